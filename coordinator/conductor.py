@@ -1,0 +1,179 @@
+"""The conductor: advances simulated time for one run in windows, with a count-based barrier.
+
+Each window it publishes ``advance(t_end, expected_in)``, waits until every federate replied
+``done``, adds up what each federate sent to each other one (the next window's ``expected_in``)
+and picks the next window: the one after, or -- when every federate's next event and every
+message in flight lies later -- straight the window holding the earliest of them (idle jump).
+While waiting it polls a health check so that a dead or silent federate fails the run at once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import queue
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from services.common import keys
+from services.common.bus import Bus
+from services.common.messages import Advance, Done, MessageError, Ready, Stop, Stopped
+
+
+class RunFailed(Exception):
+    """The run cannot go on; ``reason`` says which federate and why."""
+
+    def __init__(self, reason: str, federate: str | None = None, status: str = "failed") -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.federate = federate
+        self.status = status
+
+
+@dataclass
+class Progress:
+    t_us: int
+    end_us: int
+    windows: int
+    wall_s: float
+
+
+@dataclass
+class ConductorResult:
+    windows: int
+    t_end_us: int
+    trace_hash: str
+    stopped: dict[str, Stopped] = field(default_factory=dict)
+
+
+HealthCheck = Callable[[], None]  # raises RunFailed
+
+
+class Conductor:
+    def __init__(self, bus: Bus, run_id: str, federates: list[str], window_us: int, end_us: int,
+                 window_timeout_s: float = 10.0, health: HealthCheck | None = None,
+                 on_progress: Callable[[Progress], None] | None = None,
+                 progress_every_s: float = 0.5) -> None:
+        self.bus = bus
+        self.run_id = run_id
+        self.federates = sorted(federates)
+        self.window_us = window_us
+        self.end_us = end_us
+        self.window_timeout_s = window_timeout_s
+        self.health = health or (lambda: None)
+        self.on_progress = on_progress
+        self.progress_every_s = progress_every_s
+        self._inbox: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
+        self._trace = hashlib.sha256()
+        self.windows = 0
+        self.t_us = 0
+        bus.subscribe(keys.ready_all(run_id), lambda k, p: self._inbox.put(("ready", k, p)))
+        bus.subscribe(keys.done_all(run_id), lambda k, p: self._inbox.put(("done", k, p)))
+        bus.subscribe(keys.stopped_all(run_id), lambda k, p: self._inbox.put(("stopped", k, p)))
+
+    def _next(self, deadline: float, check_health: bool = True) -> tuple[str, str, bytes] | None:
+        """Next control message, polling health every 50 ms; None at the deadline."""
+        while True:
+            if check_health:
+                self.health()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            try:
+                return self._inbox.get(timeout=min(0.05, left))
+            except queue.Empty:
+                continue
+
+    def wait_ready(self, timeout_s: float) -> None:
+        waiting = set(self.federates)
+        deadline = time.monotonic() + timeout_s
+        while waiting:
+            item = self._next(deadline)
+            if item is None:
+                raise RunFailed(f"federates not ready within {timeout_s:.0f} s: {', '.join(sorted(waiting))}",
+                                federate=sorted(waiting)[0])
+            kind, key, payload = item
+            if kind == "ready":
+                waiting.discard(Ready.decode(payload).federate)
+
+    def run(self) -> ConductorResult:
+        """Conduct windows until the end time; raises RunFailed."""
+        sent: dict[str, dict[str, int]] = {f: {} for f in self.federates}
+        t_start = 0
+        wall0 = time.monotonic()
+        last_progress = 0.0
+        while t_start < self.end_us:
+            t_end = t_start + self.window_us
+            expected = {f: sum(s.get(f, 0) for s in sent.values()) for f in self.federates}
+            adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected)
+            self._trace.update(f"{self.windows}:{t_start}:{t_end};".encode())
+            self.bus.publish(keys.advance(self.run_id), adv.encode())
+            dones = self._collect_done(self.windows)
+            nexts: list[int] = []
+            for d in dones.values():
+                sent[d.federate] = d.sent_to
+                if d.next_event_us is not None:
+                    nexts.append(d.next_event_us)
+                if d.earliest_sent_us is not None:
+                    nexts.append(d.earliest_sent_us)
+            self.windows += 1
+            self.t_us = t_end
+            if nexts:
+                earliest = min(nexts)
+                if earliest < t_end:
+                    raise RunFailed(f"a federate reported an event at {earliest} us, before the window end {t_end} us")
+                t_start = earliest // self.window_us * self.window_us
+            else:
+                t_start = self.end_us  # nothing will ever happen again
+            now = time.monotonic()
+            if self.on_progress and now - last_progress >= self.progress_every_s:
+                last_progress = now
+                self.on_progress(Progress(min(t_end, self.end_us), self.end_us, self.windows, now - wall0))
+        if self.on_progress:
+            self.on_progress(Progress(self.end_us, self.end_us, self.windows, time.monotonic() - wall0))
+        return ConductorResult(self.windows, self.t_us, self._trace.hexdigest())
+
+    def _collect_done(self, window: int) -> dict[str, Done]:
+        dones: dict[str, Done] = {}
+        deadline = time.monotonic() + self.window_timeout_s
+        while len(dones) < len(self.federates):
+            item = self._next(deadline)
+            if item is None:
+                silent = sorted(set(self.federates) - set(dones))
+                raise RunFailed(f"no answer to window {window} within {self.window_timeout_s:.0f} s from "
+                                f"{', '.join(silent)} (hung)", federate=silent[0])
+            kind, key, payload = item
+            if kind != "done":
+                continue
+            try:
+                d = Done.decode(payload)
+            except MessageError as exc:
+                raise RunFailed(f"bad done report on {key}: {exc}") from None
+            if d.error:
+                raise RunFailed(f"{d.federate} failed in window {d.window}: {d.error}", federate=d.federate)
+            if d.window == window:
+                dones[d.federate] = d
+        return dones
+
+    def stop(self, reason: str, timeout_s: float = 30.0) -> dict[str, Stopped]:
+        """Tell every federate to finish (write its results) and collect their reports."""
+        self.bus.publish(keys.stop(self.run_id), Stop(reason=reason, t_us=self.t_us).encode())
+        got: dict[str, Stopped] = {}
+        deadline = time.monotonic() + timeout_s
+        while len(got) < len(self.federates):
+            # Federates exit once they reported: no health check while collecting reports.
+            item = self._next(deadline, check_health=False)
+            if item is None:
+                break
+            kind, key, payload = item
+            if kind == "stopped":
+                s = Stopped.decode(payload)
+                got[s.federate] = s
+        return got
+
+    def trace_hash(self, stopped: dict[str, Stopped]) -> str:
+        """One hash over the windows conducted and every federate's own trace."""
+        h = hashlib.sha256(self._trace.digest())
+        for name in sorted(stopped):
+            h.update(f"{name}:{stopped[name].trace_hash};".encode())
+        return h.hexdigest()

@@ -1,0 +1,71 @@
+"""What a runtime must do to host a run's federates: start them, report deaths, show logs, stop.
+
+``FederateSpec`` is the runtime-independent description of one federate; the process runtime
+(``coordinator.runtime_process``) and the docker runtime implement ``Launcher``. Every federate
+is started as ``python -m services.main <role> --name ... --run-id ... --endpoint ...
+--scenario <resolved yaml> --results <run dir>``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class NodeLimits:
+    """A compute node's capacity: fraction of one host core, memory (None: unlimited)."""
+
+    cpus: float | None = None
+    mem_mb: int | None = None
+
+
+@dataclass(frozen=True)
+class FederateSpec:
+    """One federate of a run."""
+
+    name: str  # e.g. "camera-0"
+    role: str  # physics, camera, edge, robot, netsim, loops
+    limits: NodeLimits = field(default_factory=NodeLimits)
+
+    def argv(self, run_id: str, endpoint: str, scenario_path: str, results_dir: str) -> list[str]:
+        """Arguments after ``python``."""
+        return [
+            "-m", "services.main", self.role,
+            "--name", self.name,
+            "--run-id", run_id,
+            "--endpoint", endpoint,
+            "--scenario", scenario_path,
+            "--results", results_dir,
+        ]
+
+
+class Launcher(ABC):
+    """Starts and supervises the federates of one run."""
+
+    def router_listen_endpoint(self, router_port: int) -> str:
+        """Where the coordinator's zenoh router listens (loopback unless a runtime needs more)."""
+        return f"tcp/127.0.0.1:{router_port}"
+
+    @abstractmethod
+    def router_endpoint_for_federates(self, router_port: int) -> str:
+        """The zenoh endpoint federates connect to, given the coordinator's router port."""
+
+    @abstractmethod
+    def start(self, specs: list[FederateSpec], run_id: str, endpoint: str, scenario_path: Path,
+              run_dir: Path) -> None:
+        """Start every federate; returns once they are launched (not necessarily ready)."""
+
+    @abstractmethod
+    def dead(self) -> dict[str, str]:
+        """Federates that have exited, with a reason (exit code, OOM kill, ...)."""
+
+    @abstractmethod
+    def last_log_lines(self, name: str, n: int = 20) -> list[str]:
+        """The last ``n`` lines a federate wrote to its log."""
+
+    @abstractmethod
+    def stop(self, grace_s: float = 5.0) -> None:
+        """Stop every federate (terminate, then kill after ``grace_s``) and release resources.
+        Safe to call twice and on every exit path."""

@@ -1,0 +1,195 @@
+"""One run's life cycle: prepare the run directory, start the router and the federates, conduct
+simulated time, stop everything on every exit path, write results and KPIs.
+
+A run ends in exactly one state: ``completed``, ``failed`` (with the federate and reason),
+``cancelled`` or ``timed_out``.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from coordinator.conductor import Conductor, Progress, RunFailed
+from coordinator.launcher import FederateSpec, Launcher, NodeLimits
+from coordinator.results import compute_kpis, versions
+from services.common import keys
+from services.common.scenario import Scenario, dump_scenario
+from services.common.tables import write_json
+from services.common.zenoh_bus import ZenohBus
+
+log = logging.getLogger(__name__)
+
+STATES = ("pending", "running", "completed", "failed", "cancelled", "timed_out")
+
+
+def new_run_id(scenario: Scenario) -> str:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return f"{scenario.name}-{stamp}-{secrets.token_hex(3)}"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def federate_specs(scenario: Scenario) -> list[FederateSpec]:
+    profiles = {"camera": scenario.nodes.camera, "edge": scenario.nodes.edge, "robot": scenario.nodes.robot}
+    specs = []
+    for name, role in scenario.federates():
+        p = profiles.get(role)
+        limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb) if p else NodeLimits()
+        specs.append(FederateSpec(name=name, role=role, limits=limits))
+    return specs
+
+
+@dataclass
+class RunResult:
+    run_id: str
+    status: str
+    run_dir: Path
+    kpis: dict[str, Any] = field(default_factory=dict)
+    reason: str | None = None
+
+
+class LivenessWatch:
+    """Records federates whose liveliness token vanished while the run was going."""
+
+    def __init__(self, bus: Any, run_id: str) -> None:
+        self.seen: set[str] = set()
+        self.lost: list[str] = []
+        self.armed = True
+        bus.watch_liveliness(keys.alive_all(run_id), self._on_change)
+
+    def _on_change(self, key: str, alive: bool) -> None:
+        name = keys.last_segment(key)
+        if alive:
+            self.seen.add(name)
+        elif self.armed and name in self.seen:
+            self.lost.append(name)
+
+
+def execute_run(
+    scenario: Scenario,
+    results_root: Path,
+    launcher: Launcher | None = None,
+    on_progress: Callable[[Progress], None] | None = None,
+    cancel: threading.Event | None = None,
+    run_id: str | None = None,
+) -> RunResult:
+    """Run ``scenario`` to its end; never raises for a failing run (see ``RunResult.status``)."""
+    if launcher is None:
+        if scenario.runtime == "docker":
+            from coordinator.runtime_docker import DockerLauncher
+            launcher = DockerLauncher()
+        else:
+            from coordinator.runtime_process import ProcessLauncher
+            launcher = ProcessLauncher()
+    run_id = run_id or new_run_id(scenario)
+    run_dir = (results_root / run_id).resolve()
+    run_dir.mkdir(parents=True, exist_ok=False)
+    scenario_path = run_dir / "config.yaml"
+    scenario_path.write_text(dump_scenario(scenario))
+    write_json(run_dir / "versions.json", versions())
+    write_json(run_dir / "status.json", {"run_id": run_id, "status": "running", "seed": scenario.seed})
+
+    wall0 = time.monotonic()
+    port = free_port()
+    router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
+    status, reason, failed_federate, log_tail = "completed", None, None, []
+    conductor = None
+    stopped: dict[str, Any] = {}
+    result_trace = ""
+    windows = 0
+    sim_us = 0
+    try:
+        liveness = LivenessWatch(router, run_id)
+        specs = federate_specs(scenario)
+        names = [s.name for s in specs]
+        deadline = wall0 + scenario.watchdog.run_timeout_s
+
+        def health() -> None:
+            if cancel is not None and cancel.is_set():
+                raise RunFailed("cancelled by the user", status="cancelled")
+            dead = launcher.dead()
+            if dead:
+                name = sorted(dead)[0]
+                raise RunFailed(f"federate {name} {dead[name]}", federate=name)
+            if liveness.lost:
+                name = liveness.lost[0]
+                raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)", federate=name)
+            if time.monotonic() > deadline:
+                raise RunFailed(f"run exceeded watchdog.run_timeout_s = {scenario.watchdog.run_timeout_s} s",
+                                status="timed_out")
+
+        conductor = Conductor(router, run_id, names, scenario.window_us, scenario.duration_us,
+                              scenario.watchdog.window_timeout_s, health, on_progress)
+        launcher.start(specs, run_id, launcher.router_endpoint_for_federates(port), scenario_path, run_dir)
+        conductor.wait_ready(scenario.watchdog.ready_timeout_s)
+        outcome = conductor.run()
+        windows, sim_us, result_trace = outcome.windows, outcome.t_end_us, outcome.trace_hash
+    except RunFailed as exc:
+        status, reason, failed_federate = exc.status, exc.reason, exc.federate
+        if failed_federate:
+            log_tail = launcher.last_log_lines(failed_federate, 20)
+        windows = conductor.windows if conductor else 0
+        sim_us = conductor.t_us if conductor else 0
+    except Exception as exc:  # a coordinator bug must still end the run cleanly
+        log.exception("run %s crashed", run_id)
+        status, reason = "failed", f"coordinator error: {type(exc).__name__}: {exc}"
+    finally:
+        try:
+            if conductor is not None:
+                liveness.armed = False
+                # Healthy federates write their tables before leaving, also when the run failed.
+                stopped = conductor.stop(status, timeout_s=30.0 if status == "completed" else 3.0)
+        finally:
+            launcher.stop(grace_s=3.0)
+            router.close()
+
+    wall_s = time.monotonic() - wall0
+    sim_s = min(sim_us, scenario.duration_us) / 1e6
+    if status == "completed" and len(stopped) < len(scenario.federates()):
+        missing = sorted({n for n, _ in scenario.federates()} - set(stopped))
+        status, reason = "failed", f"no final report from {', '.join(missing)}"
+    kpis: dict[str, Any] = {}
+    try:
+        kpis = compute_kpis(run_dir, sim_s, scenario.loops)
+    except Exception as exc:  # tables of a failed run may be missing or partial
+        kpis = {"kpi_error": f"{type(exc).__name__}: {exc}"}
+    summaries = {name: s.summary for name, s in sorted(stopped.items())}
+    edge = summaries.get("edge", {})
+    trace = conductor.trace_hash(stopped) if conductor is not None and status == "completed" else None
+    kpis.update({
+        "run_id": run_id,
+        "scenario": scenario.name,
+        "status": status,
+        "reason": reason,
+        "failed_federate": failed_federate,
+        "log_tail": log_tail,
+        "seed": scenario.seed,
+        "policy": scenario.policy.name,
+        "detailed_loops": scenario.detailed_loops,
+        "estimator": edge.get("estimator", scenario.edge.estimator),
+        "sim_time_s": sim_s,
+        "wall_time_s": wall_s,
+        "real_time_factor": sim_s / wall_s if wall_s > 0 else None,
+        "windows": windows,
+        "windows_trace": result_trace,
+        "trace_hash": trace,
+        "results_dir": str(run_dir),
+        "federates": summaries,
+    })
+    write_json(run_dir / "kpis.json", kpis)
+    write_json(run_dir / "status.json", {"run_id": run_id, "status": status, "reason": reason,
+                                         "seed": scenario.seed})
+    return RunResult(run_id, status, run_dir, kpis, reason)

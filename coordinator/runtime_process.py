@@ -1,0 +1,88 @@
+"""The ``process`` runtime: every federate an OS process on this host, logs in the run directory.
+
+Each federate runs in its own process group so that stopping the run also ends anything it
+started; the node profile's CPU limit applies through the compute emulator's timing (``cpu`` or
+``model``), since unprivileged hosts usually do not let us create cgroups.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+from coordinator.launcher import FederateSpec, Launcher
+
+
+class ProcessLauncher(Launcher):
+    def __init__(self) -> None:
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.logs: dict[str, Path] = {}
+        self._stopping = False
+
+    def router_endpoint_for_federates(self, router_port: int) -> str:
+        return f"tcp/127.0.0.1:{router_port}"
+
+    def start(self, specs: list[FederateSpec], run_id: str, endpoint: str, scenario_path: Path,
+              run_dir: Path) -> None:
+        log_dir = run_dir / "logs"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ)
+        env.setdefault("MUJOCO_GL", "egl")
+        env["PYTHONUNBUFFERED"] = "1"
+        # One thread per process: the node's speed is emulated, and BLAS/OpenMP thread pools on a
+        # shared host only add noise to CPU-time measurements.
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")
+        for spec in specs:
+            log_path = log_dir / f"{spec.name}.log"
+            self.logs[spec.name] = log_path
+            with open(log_path, "ab") as log:
+                self.procs[spec.name] = subprocess.Popen(
+                    [sys.executable, *spec.argv(run_id, endpoint, str(scenario_path), str(run_dir))],
+                    stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                    start_new_session=True,
+                )
+
+    def dead(self) -> dict[str, str]:
+        out = {}
+        for name, proc in self.procs.items():
+            code = proc.poll()
+            if code is not None:
+                how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
+                out[name] = how
+        return out
+
+    def last_log_lines(self, name: str, n: int = 20) -> list[str]:
+        path = self.logs.get(name)
+        if path is None or not path.exists():
+            return []
+        with open(path, errors="replace") as f:
+            return [line.rstrip("\n") for line in deque(f, maxlen=n)]
+
+    def stop(self, grace_s: float = 5.0) -> None:
+        # Federates told to stop leave on their own; give them a moment before signalling.
+        deadline = time.monotonic() + min(grace_s, 2.0)
+        while time.monotonic() < deadline and any(p.poll() is None for p in self.procs.values()):
+            time.sleep(0.02)
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGTERM)
+                    os.killpg(proc.pid, signal.SIGCONT)  # a stopped (hung) process must wake to die
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + grace_s
+        for proc in self.procs.values():
+            try:
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait()

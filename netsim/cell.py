@@ -1,0 +1,85 @@
+"""The interface every radio cell model implements, and the packet records it produces.
+
+The netsim federate owns the clock and the wire format; a ``Cell`` only sees IP packets entering
+sender buffers and is stepped one slot at a time. Implementations: ``netsim.simple.SimpleCell``
+(shared-capacity queues) and the NR system-level model.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+Direction = Literal["ul", "dl"]
+
+# Why a packet never arrived.
+LOSS_CHANNEL = "channel"  # residual error after HARQ (or the simple cell's loss draw)
+LOSS_DELAY_BUDGET = "delay_budget"  # older than its flow's packet delay budget at the sender
+LOSS_BUFFER = "buffer_overflow"  # sender buffer full on arrival
+
+
+@dataclass(slots=True)
+class Packet:
+    """One IP packet handed to a sender's modem.
+
+    ``enqueue_us`` is the slot boundary at which it enters the sender buffer; ``ue`` is the UE it
+    belongs to (the sender in uplink, the receiver in downlink); ``flow`` names its QoS flow.
+    """
+
+    packet_id: int
+    flow: str
+    ue: str
+    direction: Direction
+    size_bytes: int
+    enqueue_us: int
+    ref: Any = None  # opaque to the cell: the netsim federate's routing data
+
+
+@dataclass(slots=True)
+class PacketOutcome:
+    """The fate of a packet: delivered at ``deliver_us`` (a slot end) or lost with ``cause``."""
+
+    packet: Packet
+    deliver_us: int | None
+    cause: str | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def delivered(self) -> bool:
+        return self.deliver_us is not None
+
+
+@dataclass(slots=True)
+class FlowQos:
+    """Per-flow QoS: lower ``priority`` is served first; packets older than ``delay_budget_us``
+    are discarded at the sender (None: no budget)."""
+
+    priority: int = 10
+    delay_budget_us: int | None = None
+
+
+class Cell(ABC):
+    """A radio cell stepped slot by slot."""
+
+    slot_us: int
+
+    @abstractmethod
+    def enqueue(self, packet: Packet) -> PacketOutcome | None:
+        """Put a packet in its sender buffer; returns an outcome at once if it is refused."""
+
+    @abstractmethod
+    def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
+        """Simulate the slot starting at ``slot_start_us``; outcomes decided in it (deliveries at
+        ``slot_start_us + slot_us``, losses)."""
+
+    @abstractmethod
+    def has_pending(self) -> bool:
+        """True while any buffer or HARQ process holds data, i.e. the next slot has work."""
+
+    def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
+        """Change a flow's QoS (e.g. the co-design policy's latency budget L_r)."""
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for metrics and KPIs (free-form, numbers only)."""
+        return {}

@@ -1,0 +1,109 @@
+"""A shared-capacity cell: per direction, a fixed number of bytes served per slot.
+
+The first cell model of the platform: packets wait in per-direction queues ordered by flow priority
+then arrival, the head packet takes the slot's remaining bytes, a packet is delivered at the end of
+the slot that carries its last byte, unless a seeded draw loses it (``loss_probability``). Sender
+buffers are bounded per UE and packets older than their flow's delay budget are discarded before
+transmission, as the NR model does.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from netsim.cell import (
+    LOSS_BUFFER,
+    LOSS_CHANNEL,
+    LOSS_DELAY_BUDGET,
+    Cell,
+    FlowQos,
+    Packet,
+    PacketOutcome,
+)
+
+
+class SimpleCell(Cell):
+    def __init__(self, slot_us: int, ul_rate_mbps: float, dl_rate_mbps: float, loss_probability: float,
+                 buffer_bytes: int, rng: np.random.Generator) -> None:
+        self.slot_us = slot_us
+        self.capacity = {
+            "ul": int(ul_rate_mbps * 1e6 / 8 * slot_us / 1e6),
+            "dl": int(dl_rate_mbps * 1e6 / 8 * slot_us / 1e6),
+        }
+        self.loss_probability = loss_probability
+        self.buffer_bytes = buffer_bytes
+        self.rng = rng
+        self.qos: dict[str, FlowQos] = {}
+        # heap of (priority, enqueue_us, packet_id, packet) per direction
+        self.queues: dict[str, list[tuple[int, int, int, Packet]]] = {"ul": [], "dl": []}
+        self.head_left: dict[str, int | None] = {"ul": None, "dl": None}  # bytes left of the head
+        self.buffered: dict[tuple[str, str], int] = defaultdict(int)  # (ue, dir) -> bytes
+        self.served_bytes = {"ul": 0, "dl": 0}
+        self.busy_slots = {"ul": 0, "dl": 0}
+        self.slots = 0
+
+    def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
+        self.qos[flow] = qos
+
+    def enqueue(self, packet: Packet) -> PacketOutcome | None:
+        key = (packet.ue, packet.direction)
+        if self.buffered[key] + packet.size_bytes > self.buffer_bytes:
+            return PacketOutcome(packet, None, LOSS_BUFFER)
+        self.buffered[key] += packet.size_bytes
+        prio = self.qos.get(packet.flow, FlowQos()).priority
+        heapq.heappush(self.queues[packet.direction], (prio, packet.enqueue_us, packet.packet_id, packet))
+        return None
+
+    def has_pending(self) -> bool:
+        return bool(self.queues["ul"] or self.queues["dl"])
+
+    def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
+        self.slots += 1
+        end = slot_start_us + self.slot_us
+        out: list[PacketOutcome] = []
+        for direction in ("ul", "dl"):
+            q = self.queues[direction]
+            budget = self.capacity[direction]
+            if q:
+                self.busy_slots[direction] += 1
+            while q and budget > 0:
+                packet = q[0][3]
+                if self.head_left[direction] is None:
+                    pdb = self.qos.get(packet.flow, FlowQos()).delay_budget_us
+                    if pdb is not None and slot_start_us - packet.enqueue_us > pdb:
+                        self._pop(direction)
+                        out.append(PacketOutcome(packet, None, LOSS_DELAY_BUDGET))
+                        continue
+                    self.head_left[direction] = packet.size_bytes
+                left = self.head_left[direction]
+                assert left is not None
+                take = min(left, budget)
+                budget -= take
+                self.served_bytes[direction] += take
+                if take < left:
+                    self.head_left[direction] = left - take
+                    break
+                self._pop(direction)
+                if self.loss_probability and self.rng.random() < self.loss_probability:
+                    out.append(PacketOutcome(packet, None, LOSS_CHANNEL))
+                else:
+                    out.append(PacketOutcome(packet, end))
+        return out
+
+    def _pop(self, direction: str) -> None:
+        packet = heapq.heappop(self.queues[direction])[3]
+        self.buffered[(packet.ue, direction)] -= packet.size_bytes
+        self.head_left[direction] = None
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "slots": self.slots,
+            "ul_bytes": self.served_bytes["ul"],
+            "dl_bytes": self.served_bytes["dl"],
+            "ul_busy_slots": self.busy_slots["ul"],
+            "dl_busy_slots": self.busy_slots["dl"],
+        }

@@ -1,0 +1,81 @@
+"""The camera node: receives rendered RGB-D frames, keeps each with probability PDP_r (the Edge's
+co-design signal), compresses kept frames on its throttled CPU and hands them to the modem as
+IP packets of an uplink flow to the Edge.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.camera.codec import encode_frame, slot_after, split_packets
+from services.common.compute import ComputeNode
+from services.common.federate import Federate
+from services.common.messages import Message
+from services.common.tables import write_table
+
+
+class CameraFederate(Federate):
+    role = "camera"
+
+    def setup(self) -> None:
+        self.loop = int(self.name.rsplit("-", 1)[1])
+        self.cpu = ComputeNode(self.name, self.scenario.nodes.camera, self.rng("compute"))
+        self.keep_rng = self.rng("pdp")
+        self.pdp = 1.0
+        self.pdb_us: int | None = None
+        self.frames: list[dict[str, Any]] = []
+        self.frame_id = 0
+        cv2.setNumThreads(1)  # one emulated core: keep OpenCV from spreading a job over threads
+
+    def on_message(self, msg: Message) -> None:
+        if msg.kind == "frame":
+            self._on_frame(msg)
+        elif msg.kind == "qos":
+            self.pdp = float(msg.body["pdp"])
+            self.pdb_us = msg.body.get("pdb_us")
+        else:
+            raise ValueError(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+
+    def _on_frame(self, msg: Message) -> None:
+        sc = self.scenario
+        fid = self.frame_id
+        self.frame_id += 1
+        keep = bool(self.keep_rng.random() < self.pdp)
+        row: dict[str, Any] = {"loop": self.loop, "frame_id": fid, "capture_us": msg.body["capture_us"],
+                               "pdp": self.pdp, "kept": keep, "bytes": 0, "packets": 0, "ready_us": None}
+        self.frames.append(row)
+        if not keep:
+            return
+        w, h = int(msg.body["w"]), int(msg.body["h"])
+        blob = msg.blob or b""
+        rgb = np.frombuffer(blob, np.uint8, w * h * 3).reshape(h, w, 3)
+        depth = np.frombuffer(blob, np.uint16, w * h, w * h * 3).reshape(h, w)
+        data, ready = self.cpu.run("compress", self.now, encode_frame, rgb, depth, sc.camera.jpeg_quality)
+        row["bytes"], row["ready_us"] = len(data), ready
+        self.schedule(ready, self._transmit, fid, msg.body["capture_us"], data)
+
+    def _transmit(self, fid: int, capture_us: int, data: bytes) -> None:
+        sc = self.scenario
+        sizes = split_packets(len(data), sc.camera.mtu_bytes)
+        self.frames[fid]["packets"] = len(sizes)
+        enter = slot_after(self.now, sc.netsim.slot_us)
+        offset = 0
+        for idx, size in enumerate(sizes):
+            chunk = data[offset:offset + size - 40]
+            offset += len(chunk)
+            self.send("netsim", "net", "packet", enter, {
+                "ue": self.name, "dir": "ul", "flow": f"{self.name}/video", "size": size,
+                "dst": "edge", "pdb_us": self.pdb_us,
+                "app": {"type": "frame", "loop": self.loop, "frame_id": fid, "capture_us": capture_us,
+                        "idx": idx, "n": len(sizes)},
+            }, chunk)
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        write_table(self.results_dir / "tables" / f"frames-{self.name}.parquet", self.frames)
+        write_table(self.results_dir / "tables" / f"jobs-{self.name}.parquet", self.cpu.record_dicts())
+        kept = [f for f in self.frames if f["kept"]]
+        return {"frames": len(self.frames), "frames_kept": len(kept),
+                "bytes_per_frame": (sum(f["bytes"] for f in kept) / len(kept)) if kept else 0.0}

@@ -1,0 +1,121 @@
+"""Message schemas: the data envelope every federate exchanges and the control records.
+
+Data messages are a compact msgpack array (bulk payloads such as frames travel as raw bytes in
+``blob``); control messages are schema-versioned pydantic records serialised as msgpack. Every
+message carries its delivery time (integer microseconds), its source and a per-source sequence
+number, which together give the processing order (t_us, src, seq).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import msgpack
+from pydantic import BaseModel, ConfigDict, Field
+
+SCHEMA_VERSION = 1
+
+
+class MessageError(ValueError):
+    """A message that cannot be decoded or does not match its schema."""
+
+
+@dataclass(slots=True)
+class Message:
+    """A data message between federates, delivered at ``t_us``."""
+
+    t_us: int
+    src: str
+    dst: str
+    seq: int
+    plane: str
+    kind: str
+    body: dict[str, Any] = field(default_factory=dict)
+    blob: bytes | None = None
+    window: int = 0  # window in which it was sent: the barrier counts per sending window
+
+    def order_key(self) -> tuple[int, str, int]:
+        return (self.t_us, self.src, self.seq)
+
+    def encode(self) -> bytes:
+        return msgpack.packb(
+            [SCHEMA_VERSION, self.t_us, self.src, self.dst, self.seq, self.plane, self.kind,
+             self.body, self.blob, self.window],
+            use_bin_type=True,
+        )
+
+    @classmethod
+    def decode(cls, raw: bytes) -> Message:
+        try:
+            v, t_us, src, dst, seq, plane, kind, body, blob, window = msgpack.unpackb(raw, raw=False)
+        except Exception as exc:  # malformed bytes from the wire
+            raise MessageError(f"undecodable data message: {exc}") from exc
+        if v != SCHEMA_VERSION:
+            raise MessageError(f"data message schema v{v}, this build speaks v{SCHEMA_VERSION}")
+        if not isinstance(t_us, int) or not isinstance(seq, int):
+            raise MessageError("data message t_us and seq must be integers")
+        return cls(t_us, src, dst, seq, plane, kind, body or {}, blob, window)
+
+
+class ControlRecord(BaseModel):
+    """Base of control-plane records: versioned, strict, msgpack on the wire."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    v: int = Field(default=SCHEMA_VERSION, description="schema version")
+    KIND: ClassVar[str] = "control"
+
+    def encode(self) -> bytes:
+        return msgpack.packb(self.model_dump(), use_bin_type=True)
+
+    @classmethod
+    def decode(cls, raw: bytes) -> Any:
+        try:
+            data = msgpack.unpackb(raw, raw=False)
+        except Exception as exc:
+            raise MessageError(f"undecodable {cls.KIND} record: {exc}") from exc
+        if not isinstance(data, dict) or data.get("v") != SCHEMA_VERSION:
+            raise MessageError(f"{cls.KIND} record has schema {data!r:.80}, expected v{SCHEMA_VERSION}")
+        return cls.model_validate(data)
+
+
+class Ready(ControlRecord):
+    KIND: ClassVar[str] = "ready"
+    federate: str = Field(description="name of the federate that is ready")
+    pid: int = Field(description="OS process id, for diagnostics")
+
+
+class Advance(ControlRecord):
+    KIND: ClassVar[str] = "advance"
+    window: int = Field(description="window index, from 0")
+    t_start_us: int = Field(description="start of the window (inclusive), microseconds")
+    t_end_us: int = Field(description="end of the window (exclusive), microseconds")
+    expected_in: dict[str, int] = Field(
+        description="per federate: number of data messages sent to it in all earlier windows; it "
+        "waits until it has received that many (counted by sending window) before processing"
+    )
+
+
+class Done(ControlRecord):
+    KIND: ClassVar[str] = "done"
+    federate: str = Field(description="reporting federate")
+    window: int = Field(description="window index this report closes")
+    t_end_us: int = Field(description="end of the window processed")
+    sent_to: dict[str, int] = Field(description="cumulative data messages sent, per destination")
+    next_event_us: int | None = Field(description="earliest pending internal event or input")
+    earliest_sent_us: int | None = Field(description="earliest delivery time sent in this window")
+    error: str | None = Field(default=None, description="set when the federate failed")
+
+
+class Stop(ControlRecord):
+    KIND: ClassVar[str] = "stop"
+    reason: str = Field(description="why the run stops: completed, failed, cancelled, timed_out")
+    t_us: int = Field(description="simulated time at which the run stopped")
+
+
+class Stopped(ControlRecord):
+    KIND: ClassVar[str] = "stopped"
+    federate: str = Field(description="federate that has written its results and is leaving")
+    trace_hash: str = Field(description="sha256 over every event the federate processed and sent")
+    events: int = Field(description="number of events processed")
+    summary: dict[str, Any] = Field(default_factory=dict, description="federate KPIs")

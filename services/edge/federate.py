@@ -1,0 +1,113 @@
+"""The Edge node (co-located with the gNB): reassembles uplink frames, estimates part poses on its
+throttled CPU, tracks them, sends the tracks to the robot and runs the co-design policy that sets
+each camera's PDP_r and L_r, all downlink through netsim.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.camera.codec import decode_frame, slot_after
+from services.common.compute import ComputeNode
+from services.common.federate import Federate
+from services.common.messages import Message
+from services.common.tables import write_table
+from services.edge.estimator import ClassicalEstimator, Detection
+from services.edge.policy import LoopState, Qos, make_policy
+from services.edge.tracker import Tracker
+from services.physics import cell_geometry as g
+from services.physics.cell_geometry import CameraIntrinsics
+
+PARTIAL_FRAME_TIMEOUT_US = 500_000  # a frame missing packets this long is given up
+QOS_REFRESH_US = 1_000_000  # resend an unchanged QoS this often (signalling can be lost)
+
+
+class EdgeFederate(Federate):
+    role = "edge"
+
+    def setup(self) -> None:
+        sc = self.scenario
+        self.cpu = ComputeNode(self.name, sc.nodes.edge, self.rng("compute"))
+        k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
+        self.estimator = ClassicalEstimator(k, sc.cell.object_size_m)
+        self.loops = list(range(sc.detailed_loops))
+        self.trackers = {i: Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
+        self.policy = make_policy(sc.policy)
+        self.partial: dict[tuple[int, int], dict[str, Any]] = {}
+        self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
+        self.qos_sent: dict[int, tuple[Qos, int]] = {}
+        self.frames: list[dict[str, Any]] = []
+        cv2.setNumThreads(1)
+        if self.loops:
+            self.schedule(0, self._policy_tick)
+
+    def on_message(self, msg: Message) -> None:
+        if msg.kind != "frame":
+            raise ValueError(f"edge: unexpected message kind {msg.kind!r} from {msg.src}")
+        b = msg.body
+        key = (int(b["loop"]), int(b["frame_id"]))
+        part = self.partial.setdefault(key, {"n": int(b["n"]), "chunks": {}, "first_us": self.now,
+                                             "capture_us": int(b["capture_us"])})
+        part["chunks"][int(b["idx"])] = msg.blob or b""
+        if len(part["chunks"]) == part["n"]:
+            del self.partial[key]
+            data = b"".join(part["chunks"][i] for i in range(part["n"]))
+            detections, ready = self.cpu.run("pose", self.now, self._estimate, data)
+            self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],
+                                "complete_us": self.now, "ready_us": ready, "detections": len(detections),
+                                "estimator": self.estimator.name, "lost": False})
+            self.schedule(ready, self._publish, key[0], part["capture_us"], detections)
+        self._drop_stale_partials()
+
+    def _estimate(self, data: bytes) -> list[Detection]:
+        rgb, depth = decode_frame(data)
+        return self.estimator.detect(rgb, depth)
+
+    def _drop_stale_partials(self) -> None:
+        for key in [k for k, p in self.partial.items() if self.now - p["first_us"] > PARTIAL_FRAME_TIMEOUT_US]:
+            p = self.partial.pop(key)
+            self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": p["capture_us"],
+                                "complete_us": None, "ready_us": None, "detections": 0,
+                                "estimator": self.estimator.name, "lost": True})
+
+    def _publish(self, loop: int, capture_us: int, detections: list[Detection]) -> None:
+        tracker = self.trackers[loop]
+        if tracker.last_update_us is not None and capture_us < tracker.last_update_us:
+            return  # an older frame finished after a newer one: its information is superseded
+        tracker.update(capture_us, [d.p for d in detections])
+        self.last_frame_us[loop] = capture_us
+        tracks = tracker.report(g.BELT_HALF_WIDTH)
+        self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
+                       {"type": "pose", "loop": loop, "tracks": tracks, "capture_us": capture_us})
+
+    def _policy_tick(self) -> None:
+        sc = self.scenario
+        for loop in self.loops:
+            state = LoopState(self.now, self.trackers[loop].report(g.BELT_HALF_WIDTH),
+                              self.last_frame_us[loop], sc.cell.belt_speed_m_s)
+            qos, ready = self.cpu.run("policy", self.now, self.policy.decide, state)
+            last = self.qos_sent.get(loop)
+            if last is None or last[0] != qos or self.now - last[1] >= QOS_REFRESH_US:
+                self.qos_sent[loop] = (qos, self.now)
+                self.schedule(ready, self._downlink, f"camera-{loop}", "qos", sc.edge.qos_packet_bytes,
+                              {"type": "qos", "loop": loop, "pdp": qos.pdp, "pdb_us": qos.pdb_us})
+        nxt = self.now + sc.edge.policy_period_ms * 1000
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._policy_tick)
+
+    def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
+        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us), {
+            "ue": ue, "dir": "dl", "flow": f"{ue}/{what}", "size": size, "dst": ue, "pdb_us": None,
+            "app": app,
+        })
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        write_table(self.results_dir / "tables" / "frames-edge.parquet", self.frames)
+        write_table(self.results_dir / "tables" / "jobs-edge.parquet", self.cpu.record_dicts())
+        done = [f for f in self.frames if not f["lost"]]
+        return {"frames_estimated": len(done), "frames_incomplete": len(self.frames) - len(done),
+                "estimator": self.estimator.name,
+                "mean_detections": float(np.mean([f["detections"] for f in done])) if done else 0.0}

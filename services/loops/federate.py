@@ -1,0 +1,211 @@
+"""The abstract loops (DESIGN 6): the N-K loops that are not rendered, in one process.
+
+Each abstract loop injects camera traffic with frame sizes drawn from a distribution measured on
+real compressed frames of the detailed camera, through netsim like any other loop; when netsim
+delivers a whole frame, its Edge side takes the ground-truth part poses at capture time plus the
+measured error of the real estimator, tracks them with the same tracker and sends the tracks
+downlink through netsim to a robot controller that is the same code as a detailed robot's. The
+same co-design policy sets its PDP. Compute times come from the node profiles' ``model`` draws.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+
+import numpy as np
+
+from services.camera.codec import slot_after, split_packets
+from services.common.compute import ComputeNode
+from services.common.federate import Federate
+from services.common.messages import Message
+from services.common.tables import write_table
+from services.edge.policy import LoopState, Qos, make_policy
+from services.edge.tracker import Tracker
+from services.physics import cell_geometry as g
+from services.physics.scene import SERVO_LAG_S
+from services.robot.controller import PickController
+
+
+def load_frame_model() -> dict[str, Any]:
+    """The measured frame sizes and estimator error (``python -m services.camera.measure``)."""
+    text = resources.files("services.camera").joinpath("data/frame_model.json").read_text()
+    return json.loads(text)
+
+
+@dataclass
+class AbstractLoop:
+    index: int
+    ctl: PickController
+    tracker: Tracker
+    keep_rng: np.random.Generator
+    size_rng: np.random.Generator
+    error_rng: np.random.Generator
+    camera_cpu: ComputeNode
+    edge_cpu: ComputeNode
+    robot_cpu: ComputeNode
+    pdp: float = 1.0
+    pdb_us: int | None = None
+    frame_id: int = 0
+    truth: dict[int, tuple[int, list[dict]]] = field(default_factory=dict)  # frame -> (capture, objs)
+    arrived: dict[int, int] = field(default_factory=dict)  # frame -> packets arrived
+    last_frame_us: int | None = None
+    qos_sent: tuple[Qos, int] | None = None
+    frames: int = 0
+    frames_kept: int = 0
+    bytes_sent: int = 0
+
+
+class LoopsFederate(Federate):
+    role = "loops"
+
+    def setup(self) -> None:
+        sc = self.scenario
+        model = load_frame_model()
+        self.sizes = np.asarray(model["frame_bytes"], dtype=np.int64)
+        self.error_sd = float(model["estimator_error_sd_m"])
+        self.miss_rate = float(model["estimator_miss_rate"])
+        self.policy = make_policy(sc.policy)
+        nodes = sc.nodes
+
+        def modelled(profile: Any) -> Any:
+            return profile.model_copy(update={"timing": "model"})
+
+        self.loops: dict[int, AbstractLoop] = {}
+        for i in range(sc.detailed_loops, sc.loops):
+            self.loops[i] = AbstractLoop(
+                index=i,
+                ctl=PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S),
+                tracker=Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)),
+                keep_rng=self.rng(f"camera-{i}/pdp"), size_rng=self.rng(f"camera-{i}/size"),
+                error_rng=self.rng(f"edge-{i}/error"),
+                camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),
+                edge_cpu=ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute")),
+                robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
+            )
+        self.schedule(0, self._control_tick)
+        self.schedule(0, self._policy_tick)
+
+    # ---- messages -----------------------------------------------------------------------------
+    def on_message(self, msg: Message) -> None:
+        b = msg.body
+        if msg.kind == "joint_states":
+            for key, st in b["states"].items():
+                self.loops[int(key)].ctl.on_state(st["q"], st["gripped"])
+            return
+        lp = self.loops[int(b["loop"])]
+        if msg.kind == "truth":
+            self._camera_frame(lp, int(b["capture_us"]), b["objects"])
+        elif msg.kind == "aframe":
+            self._frame_packet(lp, int(b["frame_id"]), int(b["n"]))
+        elif msg.kind == "pose":
+            lp.ctl.on_estimate(b["tracks"])
+        elif msg.kind == "qos":
+            lp.pdp, lp.pdb_us = float(b["pdp"]), b.get("pdb_us")
+        else:
+            raise ValueError(f"loops: unexpected message kind {msg.kind!r} from {msg.src}")
+
+    # ---- camera side ----------------------------------------------------------------------------
+    def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[dict]) -> None:
+        lp.frames += 1
+        if not lp.keep_rng.random() < lp.pdp:
+            return
+        lp.frames_kept += 1
+        fid = lp.frame_id
+        lp.frame_id += 1
+        size = int(lp.size_rng.choice(self.sizes))
+        _, ready = lp.camera_cpu.run("compress", self.now, int, size)
+        lp.truth[fid] = (capture_us, objects)
+        self.schedule(ready, self._transmit, lp.index, fid, size)
+
+    def _transmit(self, loop: int, fid: int, size: int) -> None:
+        lp = self.loops[loop]
+        packets = split_packets(size, self.scenario.camera.mtu_bytes)
+        enter = slot_after(self.now, self.scenario.netsim.slot_us)
+        ue = f"camera-{loop}"
+        for idx, psize in enumerate(packets):
+            lp.bytes_sent += psize
+            self.send("netsim", "net", "packet", enter, {
+                "ue": ue, "dir": "ul", "flow": f"{ue}/video", "size": psize, "dst": self.name,
+                "pdb_us": lp.pdb_us,
+                "app": {"type": "aframe", "loop": loop, "frame_id": fid, "idx": idx, "n": len(packets)},
+            })
+
+    # ---- edge side ------------------------------------------------------------------------------
+    def _frame_packet(self, lp: AbstractLoop, fid: int, n: int) -> None:
+        lp.arrived[fid] = lp.arrived.get(fid, 0) + 1
+        if lp.arrived[fid] < n:
+            return
+        del lp.arrived[fid]
+        capture_us, objects = lp.truth.pop(fid)
+        for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
+            lp.truth.pop(old)
+            lp.arrived.pop(old, None)
+        positions = self._estimate(lp, objects)
+        _, ready = lp.edge_cpu.run("pose", self.now, int, 0)
+        self.schedule(ready, self._publish, lp.index, capture_us, positions)
+
+    def _estimate(self, lp: AbstractLoop, objects: list[dict]) -> list[np.ndarray]:
+        """Ground truth at capture plus the real estimator's measured error."""
+        out = []
+        for obj in objects:
+            if lp.error_rng.random() < self.miss_rate:
+                continue
+            out.append(np.asarray(obj["p"]) + lp.error_rng.normal(0.0, self.error_sd, 3))
+        return out
+
+    def _publish(self, loop: int, capture_us: int, positions: list[np.ndarray]) -> None:
+        lp = self.loops[loop]
+        if lp.tracker.last_update_us is not None and capture_us < lp.tracker.last_update_us:
+            return
+        lp.tracker.update(capture_us, positions)
+        lp.last_frame_us = capture_us
+        self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
+                       {"type": "pose", "loop": loop, "tracks": lp.tracker.report(g.BELT_HALF_WIDTH)})
+
+    def _policy_tick(self) -> None:
+        sc = self.scenario
+        for lp in self.loops.values():
+            state = LoopState(self.now, lp.tracker.report(g.BELT_HALF_WIDTH), lp.last_frame_us,
+                              sc.cell.belt_speed_m_s)
+            qos = self.policy.decide(state)
+            if lp.qos_sent is None or lp.qos_sent[0] != qos or self.now - lp.qos_sent[1] >= 1_000_000:
+                lp.qos_sent = (qos, self.now)
+                _, ready = lp.edge_cpu.run("policy", self.now, int, 0)
+                self.schedule(ready, self._downlink, f"camera-{lp.index}", "qos", sc.edge.qos_packet_bytes,
+                              {"type": "qos", "loop": lp.index, "pdp": qos.pdp, "pdb_us": qos.pdb_us})
+        nxt = self.now + sc.edge.policy_period_ms * 1000
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._policy_tick)
+
+    def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
+        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us), {
+            "ue": ue, "dir": "dl", "flow": f"{ue}/{what}", "size": size, "dst": self.name,
+            "pdb_us": None, "app": app,
+        })
+
+    # ---- robot side -----------------------------------------------------------------------------
+    def _control_tick(self) -> None:
+        sc = self.scenario
+        latest = self.now
+        commands = []
+        for lp in self.loops.values():
+            (q, suction), ready = lp.robot_cpu.run("control", self.now, lp.ctl.step, self.now)
+            latest = max(latest, ready)
+            commands.append({"loop": lp.index, "q": [float(v) for v in q], "suction": bool(suction)})
+        # One message for all arms: they share the latest compute completion of this tick.
+        self.send("physics", "act", "command", latest + sc.robot.actuation_latency_us, {"commands": commands})
+        nxt = self.now + sc.robot.control_period_us
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._control_tick)
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        rows = [{"loop": lp.index, "frames": lp.frames, "frames_kept": lp.frames_kept,
+                 "ul_bytes": lp.bytes_sent, "picks": lp.ctl.picks} for lp in self.loops.values()]
+        write_table(self.results_dir / "tables" / "abstract-loops.parquet", rows)
+        jobs = [r for lp in self.loops.values() for cpu in (lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
+                for r in cpu.record_dicts()]
+        write_table(self.results_dir / "tables" / "jobs-loops.parquet", jobs)
+        return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows)}

@@ -1,0 +1,124 @@
+"""The physics federate: steps every cell of the hall, renders RGB-D for the detailed loops, sends
+joint states to the robot controllers, applies their commands and records task outcomes.
+
+Sensor readout and actuation are local wires with fixed latencies (>= the window), not radio.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.common.federate import Federate
+from services.common.messages import Message
+from services.common.tables import write_table
+from services.physics.world import World
+
+log = logging.getLogger(__name__)
+
+
+def frame_offset_us(loop: int, loops: int, frame_period_us: int, step_us: int) -> int:
+    """Capture phase of a loop's camera: cameras are not synchronised, spread over a period."""
+    return (loop * frame_period_us // max(loops, 1)) // step_us * step_us
+
+
+def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float, rng: np.random.Generator) -> np.ndarray:
+    """Stereo depth as a D435-class sensor reports it: uint16 millimetres, noise growing with
+    distance squared, zero where nothing is measured."""
+    noise = rng.normal(0.0, 1.0, depth_m.shape).astype(np.float32) * (noise_mm_at_1m * depth_m**2)
+    mm = depth_m * 1000.0 + noise
+    return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)
+
+
+class PhysicsFederate(Federate):
+    role = "physics"
+
+    def setup(self) -> None:
+        sc = self.scenario
+        self.detailed = list(range(sc.detailed_loops))
+        self.abstract = list(range(sc.detailed_loops, sc.loops))
+        self.world = World(sc, render_cells=self.detailed)
+        self.step_us = sc.physics_timestep_us
+        self.frame_period = sc.frame_period_us
+        self.noise_rng = self.rng("depth-noise")
+        self.frames_sent = 0
+        self.snapshot_saved = False
+        period = int(sc.cell.object_period_s * 1e6)
+        jitter = int(sc.cell.object_jitter_s * 1e6)
+        for i in range(sc.loops):
+            rng = self.rng(f"spawn-c{i}")
+            t = int(sc.cell.first_object_s * 1e6)
+            while t < sc.duration_us:
+                dt = int(rng.integers(-jitter, jitter + 1)) if jitter else 0
+                at = max(0, (t + dt) // self.step_us * self.step_us)
+                self.schedule(at, self._spawn, i, float(rng.uniform(-0.03, 0.03)))
+                t += period
+            self.schedule(frame_offset_us(i, sc.loops, self.frame_period, self.step_us), self._frame, i)
+        self.schedule(0, self._publish_states)
+
+    # ---- events -------------------------------------------------------------------------------
+    def _spawn(self, cell: int, y_offset: float) -> None:
+        self.world.advance_to(self.now)
+        self.world.spawn(cell, y_offset_m=y_offset)
+
+    def _frame(self, loop: int) -> None:
+        sc = self.scenario
+        self.world.advance_to(self.now)
+        deliver = self.now + sc.camera.readout_latency_us
+        if loop < sc.detailed_loops:
+            rgb, depth = self.world.render(loop, sc.camera.width_px, sc.camera.height_px)
+            assert depth is not None
+            depth_mm = sensor_depth_mm(depth, sc.camera.depth_noise_mm, self.noise_rng)
+            self.send(f"camera-{loop}", "sense", "frame", deliver,
+                      {"loop": loop, "capture_us": self.now, "w": rgb.shape[1], "h": rgb.shape[0],
+                       "truth": self.world.objects(loop)},
+                      rgb.tobytes() + depth_mm.tobytes())
+            self.frames_sent += 1
+            if loop == 0 and not self.snapshot_saved and self.world.objects(0) and self.now > 2_000_000:
+                self._save_snapshot(rgb)
+        else:
+            self.send("loops", "sense", "truth", deliver,
+                      {"loop": loop, "capture_us": self.now, "objects": self.world.objects(loop)})
+        nxt = self.now + self.frame_period
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._frame, loop)
+
+    def _publish_states(self) -> None:
+        sc = self.scenario
+        self.world.advance_to(self.now)
+        deliver = self.now + sc.robot.state_latency_us
+        for i in self.detailed:
+            self.send(f"robot-{i}", "sense", "joint_state", deliver,
+                      {"loop": i, "t_us": self.now, **self.world.joint_state(i)})
+        if self.abstract:
+            self.send("loops", "sense", "joint_states", deliver,
+                      {"t_us": self.now, "states": {str(i): self.world.joint_state(i) for i in self.abstract}})
+        nxt = self.now + sc.robot.control_period_us
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._publish_states)
+
+    def on_message(self, msg: Message) -> None:
+        if msg.kind != "command":
+            raise ValueError(f"physics: unexpected message kind {msg.kind!r} from {msg.src}")
+        self.world.advance_to(self.now)
+        for cmd in msg.body["commands"]:
+            self.world.command(int(cmd["loop"]), cmd["q"], bool(cmd["suction"]))
+
+    def _save_snapshot(self, rgb: np.ndarray) -> None:
+        out = self.results_dir / "frames"
+        out.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(out / "camera-0.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        top, _ = self.world.render(0, 640, 480, camera="top", depth=False)
+        cv2.imwrite(str(out / "top-0.png"), cv2.cvtColor(top, cv2.COLOR_RGB2BGR))
+        self.snapshot_saved = True
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        self.world.advance_to(min(self.now, self.scenario.duration_us))
+        rows = self.world.finish()
+        write_table(self.results_dir / "tasks.parquet", rows)
+        done = [r for r in rows if r["outcome"] != "unfinished"]
+        return {"tasks": len(done), "placed": sum(r["success"] for r in done),
+                "frames_rendered": self.frames_sent}

@@ -1,0 +1,49 @@
+"""The robot node: runs the pick-and-place controller every control period on its throttled CPU,
+with pose estimates arriving from the Edge over netsim and joint states from the arm's drives;
+commands go to the arm after the actuation latency.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from services.common.compute import ComputeNode
+from services.common.federate import Federate
+from services.common.messages import Message
+from services.common.tables import write_table
+from services.physics.scene import SERVO_LAG_S
+from services.robot.controller import PickController
+
+
+class RobotFederate(Federate):
+    role = "robot"
+
+    def setup(self) -> None:
+        sc = self.scenario
+        self.loop = int(self.name.rsplit("-", 1)[1])
+        self.cpu = ComputeNode(self.name, sc.nodes.robot, self.rng("compute"))
+        self.ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
+        self.estimates = 0
+        self.schedule(0, self._tick)
+
+    def on_message(self, msg: Message) -> None:
+        if msg.kind == "pose":
+            self.ctl.on_estimate(msg.body["tracks"])
+            self.estimates += 1
+        elif msg.kind == "joint_state":
+            self.ctl.on_state(msg.body["q"], msg.body["gripped"])
+        else:
+            raise ValueError(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+
+    def _tick(self) -> None:
+        sc = self.scenario
+        (q, suction), ready = self.cpu.run("control", self.now, self.ctl.step, self.now)
+        self.send("physics", "act", "command", ready + sc.robot.actuation_latency_us,
+                  {"commands": [{"loop": self.loop, "q": [float(v) for v in q], "suction": bool(suction)}]})
+        nxt = self.now + sc.robot.control_period_us
+        if nxt < sc.duration_us:
+            self.schedule(nxt, self._tick)
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        write_table(self.results_dir / "tables" / f"jobs-{self.name}.parquet", self.cpu.record_dicts())
+        return {"picks": self.ctl.picks, "estimates": self.estimates, "holds": self.ctl.holds}

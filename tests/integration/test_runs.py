@@ -1,0 +1,116 @@
+"""End-to-end runs in the process runtime: real federate processes over a real zenoh router."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from coordinator.conductor import Progress
+from coordinator.run import execute_run
+from coordinator.runtime_process import ProcessLauncher
+from services.common.scenario import load_scenario
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).parents[2]
+SMOKE = ROOT / "configs" / "scenarios" / "smoke.yaml"
+MODEL_TIMING = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model"]
+
+
+def processes_of(run_id: str) -> list[int]:
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if run_id.encode() in (entry / "cmdline").read_bytes():
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "coordinator.cli", "run", str(SMOKE), "--json", "--quiet",
+         "--results", str(tmp_path)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    kpis = json.loads(proc.stdout.strip().splitlines()[-1])
+    for key in ("status", "loops", "tasks", "task_success_rate", "ul_injected_mbps", "ul_throughput_mbps",
+                "ip_latency_ms", "sim_time_s", "wall_time_s", "trace_hash", "results_dir"):
+        assert key in kpis, key
+    assert kpis["status"] == "completed" and kpis["loops"] == 2
+    assert kpis["loops_with_tasks"] == 2 and kpis["tasks"] >= 4
+    assert kpis["ul_packets"] > 0 and kpis["dl_packets"] > 0
+    assert kpis["ul_throughput_mbps"] > 0 and kpis["ip_latency_ms"]["p99"] is not None
+    assert kpis["estimator"] == "classical" and kpis["camera_bitrate_mbps_mean"] > 0
+    run_dir = Path(kpis["results_dir"])
+    for name in ("config.yaml", "versions.json", "kpis.json", "tasks.parquet", "packets.parquet",
+                 "jobs.parquet", "frames.parquet", "frames/camera-0.png"):
+        assert (run_dir / name).exists(), name
+    assert not processes_of(kpis["run_id"])
+
+
+def run_trace(tmp_path: Path, seed: int) -> str:
+    sc = load_scenario(SMOKE, ["duration_s=3", f"seed={seed}", *MODEL_TIMING])
+    result = execute_run(sc, tmp_path)
+    assert result.status == "completed", result.reason
+    return str(result.kpis["trace_hash"])
+
+
+def test_same_seed_and_model_timing_give_the_same_trace(tmp_path: Path) -> None:
+    first = run_trace(tmp_path, 11)
+    assert run_trace(tmp_path, 11) == first
+    assert run_trace(tmp_path, 12) != first
+
+
+def _run_with_fault(tmp_path: Path, victim: str, fault: signal.Signals, overrides: list[str]):
+    sc = load_scenario(SMOKE, ["duration_s=20", *overrides])
+    launcher = ProcessLauncher()
+    struck: dict[str, float] = {}
+
+    def on_progress(p: Progress) -> None:
+        if p.t_us > 500_000 and not struck:
+            os.kill(launcher.procs[victim].pid, fault)
+            struck["at"] = time.monotonic()
+
+    result = execute_run(sc, tmp_path, launcher=launcher, on_progress=on_progress)
+    return result, time.monotonic() - struck["at"]
+
+
+@pytest.mark.parametrize("victim", ["physics", "netsim", "edge", "camera-1", "robot-0"])
+def test_killing_a_federate_fails_the_run_quickly_naming_it(tmp_path: Path, victim: str) -> None:
+    result, elapsed = _run_with_fault(tmp_path, victim, signal.SIGKILL, [])
+    assert result.status == "failed"
+    assert result.kpis["failed_federate"] == victim and victim in (result.reason or "")
+    assert elapsed < 15
+    assert not processes_of(result.run_id)
+
+
+def test_a_hung_federate_fails_the_run_after_the_window_timeout(tmp_path: Path) -> None:
+    result, elapsed = _run_with_fault(tmp_path, "edge", signal.SIGSTOP, ["watchdog.window_timeout_s=3"])
+    assert result.status == "failed" and "edge" in (result.reason or "") and "hung" in (result.reason or "")
+    assert elapsed < 15
+    assert not processes_of(result.run_id)
+
+
+def test_cancel_ends_the_run_as_cancelled(tmp_path: Path) -> None:
+    sc = load_scenario(SMOKE, ["duration_s=20"])
+    cancel = threading.Event()
+
+    def on_progress(p: Progress) -> None:
+        if p.t_us > 300_000:
+            cancel.set()
+
+    result = execute_run(sc, tmp_path, on_progress=on_progress, cancel=cancel)
+    assert result.status == "cancelled"
+    assert (result.run_dir / "kpis.json").exists()
+    assert not processes_of(result.run_id)

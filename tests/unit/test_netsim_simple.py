@@ -1,0 +1,57 @@
+"""The shared-capacity cell: capacity per slot, loss draws, delay budget, buffer limit."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netsim.cell import LOSS_BUFFER, LOSS_DELAY_BUDGET, FlowQos, Packet
+from netsim.simple import SimpleCell
+
+
+def cell(**kw: float) -> SimpleCell:
+    args = dict(slot_us=1000, ul_rate_mbps=12.0, dl_rate_mbps=12.0, loss_probability=0.0,
+                buffer_bytes=1_000_000)
+    args.update(kw)
+    return SimpleCell(rng=np.random.default_rng(0), **args)  # type: ignore[arg-type]
+
+
+def run(c: SimpleCell, slots: int) -> list:
+    out = []
+    for s in range(slots):
+        out += c.run_slot(s * 1000)
+    return out
+
+
+def test_delivers_at_slot_ends_at_capacity() -> None:
+    c = cell()  # 12 Mbit/s = 1500 bytes per 1 ms slot
+    for i in range(10):
+        c.enqueue(Packet(i, "f", "ue0", "ul", 1500, 0))
+    out = run(c, 12)
+    assert [o.deliver_us for o in out] == [1000 * (i + 1) for i in range(10)]
+    assert not c.has_pending()
+
+
+def test_partial_packets_span_slots() -> None:
+    c = cell()
+    c.enqueue(Packet(0, "f", "ue0", "ul", 4000, 0))
+    out = run(c, 4)
+    assert [o.deliver_us for o in out] == [3000]
+
+
+def test_loss_probability_is_drawn_per_packet() -> None:
+    c = cell(ul_rate_mbps=1200.0, loss_probability=0.3)
+    for i in range(2000):
+        c.enqueue(Packet(i, "f", "ue0", "ul", 100, 0))
+    out = run(c, 5)
+    lost = sum(1 for o in out if not o.delivered)
+    assert len(out) == 2000 and 500 < lost < 700
+
+
+def test_delay_budget_and_buffer_overflow() -> None:
+    c = cell(buffer_bytes=6000)
+    c.set_flow_qos("f", FlowQos(delay_budget_us=2000))
+    refused = [c.enqueue(Packet(i, "f", "ue0", "ul", 1500, 0)) for i in range(5)]
+    assert [r.cause for r in refused if r] == [LOSS_BUFFER]
+    out = run(c, 6)
+    causes = [o.cause for o in out]
+    assert causes.count(None) == 3 and causes.count(LOSS_DELAY_BUDGET) == 1

@@ -1,0 +1,69 @@
+"""Scenario validation: field-level errors, overrides, the time contract, the CLI's exit codes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from coordinator.cli import main
+from services.common.scenario import ScenarioError, load_scenario, parse_scenario
+
+SCENARIOS = sorted((Path(__file__).parents[2] / "configs" / "scenarios").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.stem)
+def test_shipped_scenarios_validate(path: Path) -> None:
+    sc = load_scenario(path)
+    assert sc.name == path.stem
+
+
+def test_required_scenarios_exist() -> None:
+    assert {"smoke", "baseline", "co_design"} <= {p.stem for p in SCENARIOS}
+    assert load_scenario(SCENARIOS[0].parent / "co_design.yaml").policy.name == "heuristic"
+
+
+def test_unknown_field_is_named() -> None:
+    with pytest.raises(ScenarioError) as err:
+        parse_scenario({"camera": {"fsp": 30}})
+    assert err.value.errors[0][0] == "camera.fsp"
+    assert "unknown field" in err.value.errors[0][1]
+
+
+def test_wrong_type_names_field_and_value() -> None:
+    with pytest.raises(ScenarioError) as err:
+        parse_scenario({"loops": "many"})
+    field, msg = err.value.errors[0]
+    assert field == "loops" and "'many'" in msg
+
+
+def test_latency_below_window_is_rejected_with_the_latency_named() -> None:
+    with pytest.raises(ScenarioError, match=r"robot\.actuation_latency_us = 500 us is below window_us"):
+        parse_scenario({"robot": {"actuation_latency_us": 500}})
+
+
+def test_overrides_apply_dotted_paths_with_yaml_values() -> None:
+    sc = parse_scenario({}, ["loops=8", "seed=3", "policy.name=fixed", "policy.pdp=0.5"])
+    assert (sc.loops, sc.seed, sc.policy.name, sc.policy.pdp) == (8, 3, "fixed", 0.5)
+
+
+def test_cell_layout_gives_every_ue_a_position_in_the_hall() -> None:
+    sc = parse_scenario({"loops": 20})
+    pos = sc.ue_positions_m()
+    assert len(pos) == 40
+    assert all(0 <= x <= sc.hall.length_m and 0 <= y <= sc.hall.width_m for x, y, _ in pos.values())
+
+
+def test_cli_bad_input_exits_2_without_traceback(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("loops: 2\ncamera:\n  fsp: 30\n")
+    assert main(["validate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "camera.fsp: unknown field; allowed here: " in err and "fps" in err and "Traceback" not in err
+    assert main(["run", str(bad)]) == 2
+    short = tmp_path / "short.yaml"
+    short.write_text("robot:\n  actuation_latency_us: 10\n")
+    assert main(["run", str(short)]) == 2
+    assert "actuation_latency_us = 10 us is below window_us" in capsys.readouterr().err
+    assert main(["validate", str(SCENARIOS[0]), "--set", "loops=zero"]) == 2
+    assert main(["validate", str(tmp_path / "missing.yaml")]) == 2
