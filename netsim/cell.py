@@ -77,6 +77,7 @@ class Cell(ABC):
     def has_pending(self) -> bool:
         """True while any buffer or HARQ process holds data, i.e. the next slot has work."""
 
+    @abstractmethod
     def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
         """Change a flow's QoS (e.g. the co-design policy's latency budget L_r)."""
 

@@ -7,8 +7,8 @@ downward depth camera. Names are ``c<i>_<part>`` so every node can find its cell
 
 from __future__ import annotations
 
-from services.physics import cell_geometry as g
 from services.common.scenario import Scenario
+from services.physics import cell_geometry as g
 
 OBJECT_POOL = 3  # objects per cell; a belt never holds more at the default periods
 

@@ -10,7 +10,7 @@ hold at a safe height instead of descending on a guess.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
@@ -27,7 +27,7 @@ MAX_SPEED_Z = 0.5  # m/s
 HOME = np.array([-0.1, 0.0, SAFE_Z_M])
 
 
-class Phase(str, Enum):
+class Phase(StrEnum):
     HOME = "home"
     APPROACH = "approach"
     DESCEND = "descend"
