@@ -103,6 +103,16 @@ def cmd_netsim(args: argparse.Namespace) -> int:
     return int(netsim_main(args.rest))
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from coordinator.api import create_app
+
+    app = create_app(Path(args.results), Path(args.db), Path(args.scenarios))
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="cosim5g", description="5G factory co-simulator")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -117,6 +127,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--results", default=str(DEFAULT_RESULTS), help="folder for run directories")
     r.set_defaults(fn=cmd_run)
+    s = sub.add_parser("serve", help="REST API: start runs, follow them, /metrics")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=8080)
+    s.add_argument("--results", default=str(DEFAULT_RESULTS))
+    s.add_argument("--db", default="results/cosim5g.db")
+    s.add_argument("--scenarios", default="configs/scenarios")
+    s.set_defaults(fn=cmd_serve)
     n = sub.add_parser("netsim", help="standalone 5G NR cell (calibration, benchmarks)", add_help=False)
     n.add_argument("rest", nargs=argparse.REMAINDER)
     n.set_defaults(fn=cmd_netsim)

@@ -105,7 +105,8 @@ def execute_run(
     wall0 = time.monotonic()
     port = free_port()
     router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
-    status, reason, failed_federate, log_tail = "completed", None, None, []
+    status, reason, failed_federate = "completed", None, None
+    log_tail: list[str] = []
     conductor = None
     stopped: dict[str, Any] = {}
     result_trace = ""

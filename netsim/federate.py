@@ -12,6 +12,7 @@ from typing import Any
 
 from netsim.cell import Cell, FlowQos, Packet, PacketOutcome
 from netsim.simple import SimpleCell
+from services.common import metrics
 from services.common.federate import Federate
 from services.common.messages import Message
 from services.common.tables import write_table
@@ -74,6 +75,12 @@ class NetsimFederate(Federate):
 
     def _record(self, o: PacketOutcome) -> None:
         p = o.packet
+        if o.deliver_us is None:
+            metrics.PACKETS.labels(p.direction, o.cause or "lost").inc()
+        else:
+            metrics.PACKETS.labels(p.direction, "delivered").inc()
+            metrics.PACKET_BYTES.labels(p.direction).inc(p.size_bytes)
+            metrics.PACKET_LATENCY.labels(p.direction).observe((o.deliver_us - p.enqueue_us) / 1e6)
         self.records.append({
             "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": p.direction,
             "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": o.deliver_us,

@@ -57,7 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     except ScenarioError as exc:
         print(f"{args.name}: invalid scenario {args.scenario}:\n{exc.format()}", file=sys.stderr)
         return 2
+    from services.common.metrics import serve_from_env
     from services.common.zenoh_bus import ZenohBus
+
+    serve_from_env()
 
     bus = ZenohBus(args.endpoint, mode="client")
     ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results))

@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from services.common import metrics
 from services.common.scenario import JobModel, NodeProfile
 
 T = TypeVar("T")
@@ -104,6 +105,12 @@ class ComputeNode:
         duration = self._duration_us(kind, cpu_ns, wall_ns)
         end = start + duration
         self._free_at[core] = end
+        labels = (self.node, kind)
+        metrics.JOB_DURATION.labels(*labels).observe(duration / 1e6)
+        metrics.JOB_QUEUE.labels(*labels).observe((start - arrival_us) / 1e6)
+        metrics.JOB_CPU.labels(*labels).inc(cpu_ns / 1e9)
+        if throttled:
+            metrics.JOB_THROTTLED.labels(*labels).inc(throttled / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
             queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu_ns // 1000,

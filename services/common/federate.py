@@ -24,7 +24,7 @@ from typing import Any
 
 import msgpack
 
-from services.common import keys
+from services.common import keys, metrics
 from services.common.bus import Bus
 from services.common.messages import Advance, Done, Message, Ready, Stop, Stopped
 from services.common.scenario import Scenario
@@ -128,6 +128,7 @@ class Federate:
         if self._earliest_sent is None or t_us < self._earliest_sent:
             self._earliest_sent = t_us
         self.bus.publish(keys.data(self.ctx.run_id, plane, dst, self.name), raw)
+        metrics.MESSAGES_SENT.labels(self.name, plane).inc()
 
     # ---- protocol -----------------------------------------------------------------------------
     def _enqueue(self, kind: str) -> Callable[[str, bytes], None]:
@@ -187,6 +188,7 @@ class Federate:
         self._window = adv.window
         self.window_end = adv.t_end_us
         self._earliest_sent = None
+        events_before = self._events
         heap = self._heap
         while heap and heap[0][0] < adv.t_end_us:
             t_us, src, seq, kind, item = heapq.heappop(heap)
@@ -203,6 +205,8 @@ class Federate:
                 self._trace.update(b"E")
                 self._trace.update(msgpack.packb([t_us, seq, fn.__name__], use_bin_type=True))
                 fn(*args)
+        metrics.WINDOWS.labels(self.name).inc()
+        metrics.EVENTS.labels(self.name).inc(self._events - events_before)
         next_event = heap[0][0] if heap else None
         return Done(federate=self.name, window=adv.window, t_end_us=adv.t_end_us,
                     sent_to=dict(self._sent_to), next_event_us=next_event,

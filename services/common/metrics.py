@@ -1,0 +1,37 @@
+"""Prometheus metrics of the federates (base units, ``cosim_`` prefix, ``_total`` counters).
+
+A federate serves them over HTTP when ``COSIM5G_METRICS_PORT`` is set (the docker runtime sets it
+for every container); otherwise they are only collected in-process.
+"""
+
+from __future__ import annotations
+
+import os
+
+from prometheus_client import Counter, Histogram, start_http_server
+
+_LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+JOB_DURATION = Histogram("cosim_compute_job_duration_seconds", "Emulated duration of a compute job",
+                         ["node", "kind"], buckets=_LATENCY_BUCKETS)
+JOB_QUEUE = Histogram("cosim_compute_job_queue_seconds", "Queueing delay of a compute job",
+                      ["node", "kind"], buckets=_LATENCY_BUCKETS)
+JOB_CPU = Counter("cosim_compute_job_cpu_seconds_total", "Host CPU time consumed by jobs", ["node", "kind"])
+JOB_THROTTLED = Counter("cosim_compute_job_throttled_seconds_total",
+                        "CPU time the node's cgroup quota throttled during jobs", ["node", "kind"])
+WINDOWS = Counter("cosim_federate_windows_total", "Time windows processed", ["federate"])
+EVENTS = Counter("cosim_federate_events_total", "Events (inputs and internal) processed", ["federate"])
+MESSAGES_SENT = Counter("cosim_federate_messages_sent_total", "Data messages sent", ["federate", "plane"])
+PACKET_LATENCY = Histogram("cosim_netsim_packet_latency_seconds", "IP packet latency, enqueue to delivery",
+                           ["direction"], buckets=_LATENCY_BUCKETS)
+PACKETS = Counter("cosim_netsim_packets_total", "IP packets by fate", ["direction", "outcome"])
+PACKET_BYTES = Counter("cosim_netsim_delivered_bytes_total", "IP bytes delivered", ["direction"])
+
+
+def serve_from_env() -> int | None:
+    """Start the metrics endpoint if ``COSIM5G_METRICS_PORT`` is set; the port, or None."""
+    port = os.environ.get("COSIM5G_METRICS_PORT")
+    if not port:
+        return None
+    start_http_server(int(port))
+    return int(port)
