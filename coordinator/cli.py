@@ -141,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["netsim"]:  # its own argument parser, options included
+        return cmd_netsim(argparse.Namespace(rest=argv[1:]))
     args = build_parser().parse_args(argv)
     return int(args.fn(args))
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from netsim.cell import Cell, FlowQos, Packet, PacketOutcome
+from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
 from services.common import metrics
 from services.common.federate import Federate
@@ -19,11 +20,27 @@ from services.common.tables import write_table
 
 
 def make_cell(federate: Federate) -> Cell:
-    cfg = federate.scenario.netsim
+    """The cell model the scenario names, with the UEs of every loop at their hall positions."""
+    sc = federate.scenario
+    cfg = sc.netsim
     if cfg.model == "simple":
         return SimpleCell(cfg.slot_us, cfg.ul_rate_mbps, cfg.dl_rate_mbps, cfg.loss_probability,
                           cfg.buffer_bytes, federate.rng("cell"))
-    raise ValueError(f"netsim.model {cfg.model!r} is not available")
+    return NrCell(cfg.nr, gnb_position_m=sc.hall.gnb_position_m,
+                  ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=f"{federate.name}/nr")
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Flatten nested cell statistics into ``a.b`` keys (numbers only) for the run summary."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if k == "ues":
+            continue  # per-UE detail stays out of the run summary
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        elif isinstance(v, int | float):
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 class NetsimFederate(Federate):
@@ -90,4 +107,5 @@ class NetsimFederate(Federate):
 
     def finish(self, reason: str) -> dict[str, Any]:
         write_table(self.results_dir / "packets.parquet", self.records)
-        return {"packets": len(self.records), **self.cell.stats()}
+        return {"packets": len(self.records), "model": self.scenario.netsim.model,
+                **_flat(self.cell.stats())}

@@ -15,6 +15,7 @@ import heapq
 import logging
 import os
 import queue
+import time
 import traceback
 from collections import Counter
 from collections.abc import Callable
@@ -81,6 +82,7 @@ class Federate:
         self._trace = hashlib.sha256()
         self._events = 0
         self._stopped = False
+        self._busy_s = 0.0  # wall time spent processing windows: where a slow run's time goes
 
     # ---- for subclasses -------------------------------------------------------------------
     def setup(self) -> None:
@@ -166,7 +168,9 @@ class Federate:
                 return self._stop(stop.reason, stop.t_us)
             if pending is not None and self._received_before(pending.window) >= pending.expected_in.get(self.name, 0):
                 try:
+                    t0 = time.perf_counter()
                     done = self.process_window(pending)
+                    self._busy_s += time.perf_counter() - t0
                 except Exception as exc:
                     log.error("window %d failed:\n%s", pending.window, traceback.format_exc())
                     done = Done(federate=self.name, window=pending.window, t_end_us=pending.t_end_us,
@@ -217,6 +221,8 @@ class Federate:
             return 0
         self._stopped = True
         summary = self.finish(reason)
+        summary["busy_wall_s"] = round(self._busy_s, 3)
+        summary["cpu_s"] = round(time.process_time(), 3)
         record = Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
                          summary=summary)
         self.bus.publish(keys.stopped(self.ctx.run_id, self.name), record.encode())

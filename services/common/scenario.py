@@ -15,6 +15,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from netsim.nr.config import NrConfig
+
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -86,6 +88,18 @@ class CellConfig(Strict):
     first_object_s: float = Field(default=0.5, ge=0, description="spawn time of the first object, s")
     object_size_m: float = Field(default=0.06, gt=0.02, le=0.15, description="object edge length, m")
     object_mass_kg: float = Field(default=0.3, gt=0, le=5.0, description="object mass, kg")
+    object_size_spread_m: float = Field(
+        default=0.0, ge=0, description="each object's edge length is object_size_m + uniform(+-this), m"
+    )
+    object_mass_spread_kg: float = Field(
+        default=0.0, ge=0, description="each object's mass is object_mass_kg + uniform(+-this), kg"
+    )
+    object_yaw_spread_deg: float = Field(
+        default=0.0, ge=0, le=180, description="each object lies on the belt at yaw uniform(+-this), deg"
+    )
+    object_lateral_spread_m: float = Field(
+        default=0.03, ge=0, le=0.1, description="objects land uniform(+-this) across the belt axis, m"
+    )
 
     @model_validator(mode="after")
     def _jitter_fits(self) -> CellConfig:
@@ -93,6 +107,21 @@ class CellConfig(Strict):
             raise ValueError(
                 f"object_jitter_s ({self.object_jitter_s}) must be below half object_period_s "
                 f"({self.object_period_s}) so that objects keep their order"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _spreads_fit(self) -> CellConfig:
+        size, ds = self.object_size_m, self.object_size_spread_m
+        if size - ds <= 0.02 or size + ds > 0.15:
+            raise ValueError(
+                f"object_size_m +- object_size_spread_m ({size} +- {ds}) must stay within (0.02, 0.15] m; "
+                f"lower object_size_spread_m"
+            )
+        if self.object_mass_spread_kg >= self.object_mass_kg or self.object_mass_kg + self.object_mass_spread_kg > 5.0:
+            raise ValueError(
+                f"object_mass_kg +- object_mass_spread_kg ({self.object_mass_kg} +- "
+                f"{self.object_mass_spread_kg}) must stay within (0, 5] kg; lower object_mass_spread_kg"
             )
         return self
 
@@ -140,12 +169,26 @@ class PolicyConfig(Strict):
 
 
 class NetsimConfig(Strict):
-    model: Literal["simple"] = Field(default="simple", description="cell model")
+    model: Literal["nr", "simple"] = Field(
+        default="nr", description="cell model: `nr` (5G NR system-level: channel, HARQ, link "
+        "adaptation, scheduling) or `simple` (shared capacity per slot)")
     slot_us: int = Field(default=1000, ge=125, description="slot duration, us (1000 at 15 kHz)")
+    nr: NrConfig = Field(
+        default_factory=NrConfig,
+        description="`nr`: every NR cell parameter (netsim/nr/config.py); the hall size comes from `hall`")
     ul_rate_mbps: float = Field(default=178.6, gt=0, description="`simple`: uplink capacity, Mbit/s")
     dl_rate_mbps: float = Field(default=150.0, gt=0, description="`simple`: downlink capacity, Mbit/s")
     loss_probability: float = Field(default=0.0, ge=0, lt=1, description="`simple`: per-packet loss")
-    buffer_bytes: int = Field(default=4_000_000, ge=1500, description="sender buffer per UE, bytes")
+    buffer_bytes: int = Field(default=1_000_000, ge=1500, description="`simple`: sender buffer per UE, bytes")
+
+    @model_validator(mode="after")
+    def _nr_slot(self) -> NetsimConfig:
+        if self.model == "nr" and self.nr.slot_us != self.slot_us:
+            raise ValueError(
+                f"netsim.slot_us ({self.slot_us}) must equal the NR slot at "
+                f"{self.nr.subcarrier_spacing_hz} Hz SCS ({self.nr.slot_us} us)"
+            )
+        return self
 
 
 class WatchdogConfig(Strict):
@@ -198,9 +241,24 @@ class Scenario(Strict):
             raise ValueError(
                 f"physics_timestep_us ({self.physics_timestep_us}) must divide window_us ({w})"
             )
+        self._hall_into_nr()
         if self.robot.control_period_us % self.physics_timestep_us:
             raise ValueError("robot.control_period_us must be a multiple of physics_timestep_us")
         return self
+
+    def _hall_into_nr(self) -> None:
+        """The NR channel model uses the hall of the scenario; a different one is a mistake."""
+        nr = self.netsim.nr
+        hall = {"hall_length_m": self.hall.length_m, "hall_width_m": self.hall.width_m,
+                "hall_height_m": self.hall.height_m}
+        for field, value in hall.items():
+            if field in nr.model_fields_set and getattr(nr, field) != value:
+                raise ValueError(
+                    f"netsim.nr.{field} = {getattr(nr, field)} differs from the hall ({value}): "
+                    f"set the hall size in `hall` only"
+                )
+        if any(getattr(nr, f) != v for f, v in hall.items()):
+            self.netsim.nr = nr.model_copy(update=hall)
 
     # Derived quantities, integers in microseconds.
     @property

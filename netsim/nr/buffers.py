@@ -1,0 +1,132 @@
+"""Sender buffers: per-flow FIFO queues of IP packets, filled into transport blocks by priority.
+
+One ``SenderBuffer`` per UE and link (the UE's buffer in UL, the gNB's per-UE buffer in DL).
+Flows are served in priority order (logical channel prioritisation, TS 38.321 5.4.3.1, with
+strict priority and no prioritised bit rate); within a flow, packets leave in arrival order and
+are segmented across TBs as needed, each segment paying an L2 header. A packet stays tracked by
+the segments that carry it until every byte is delivered or the packet is lost.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from netsim.cell import Packet
+
+
+class PacketEntry:
+    """An IP packet inside the cell: bytes still to send and bytes not yet delivered."""
+
+    __slots__ = ("packet", "to_send", "undelivered", "lost", "deadline_us")
+
+    def __init__(self, packet: Packet, deadline_us: int | None) -> None:
+        self.packet = packet
+        self.to_send = packet.size_bytes
+        self.undelivered = packet.size_bytes
+        self.lost = False
+        # Discard deadline at the sender (PDCP discard timer); None: no budget.
+        self.deadline_us = deadline_us
+
+
+class FlowQueue:
+    """The packets of one QoS flow in one sender buffer."""
+
+    __slots__ = ("name", "priority", "entries", "bytes")
+
+    def __init__(self, name: str, priority: int) -> None:
+        self.name = name
+        self.priority = priority
+        self.entries: deque[PacketEntry] = deque()
+        self.bytes = 0
+
+
+# One TB segment: (packet entry, bytes of that packet carried).
+Segment = tuple[PacketEntry, int]
+
+
+class SenderBuffer:
+    """The transmit buffer of one UE in one direction."""
+
+    __slots__ = ("flows", "by_name", "bytes", "packets", "limit_bytes", "header_bytes")
+
+    def __init__(self, limit_bytes: int, header_bytes: int) -> None:
+        self.flows: list[FlowQueue] = []  # sorted by (priority, name)
+        self.by_name: dict[str, FlowQueue] = {}
+        self.bytes = 0  # bytes still to send
+        self.packets = 0  # packets with bytes still to send
+        self.limit_bytes = limit_bytes
+        self.header_bytes = header_bytes
+
+    def fits(self, size_bytes: int) -> bool:
+        return self.bytes + size_bytes <= self.limit_bytes
+
+    def flow(self, name: str, priority: int) -> FlowQueue:
+        fq = self.by_name.get(name)
+        if fq is None:
+            fq = FlowQueue(name, priority)
+            self.by_name[name] = fq
+            self.flows.append(fq)
+            self.flows.sort(key=lambda f: (f.priority, f.name))
+        return fq
+
+    def set_priority(self, name: str, priority: int) -> None:
+        fq = self.by_name.get(name)
+        if fq is not None and fq.priority != priority:
+            fq.priority = priority
+            self.flows.sort(key=lambda f: (f.priority, f.name))
+
+    def add(self, fq: FlowQueue, entry: PacketEntry) -> None:
+        fq.entries.append(entry)
+        fq.bytes += entry.to_send
+        self.bytes += entry.to_send
+        self.packets += 1
+
+    def report_bytes(self) -> int:
+        """Buffer status as the MAC sees it: data plus the L2 headers it will need."""
+        return self.bytes + self.packets * self.header_bytes
+
+    def best_priority(self) -> int:
+        """Priority of the most important non-empty flow (large if empty)."""
+        for fq in self.flows:
+            if fq.bytes:
+                return fq.priority
+        return 1 << 30
+
+    def fill(self, payload_bytes: int) -> list[Segment]:
+        """Take up to ``payload_bytes`` (headers included) from the head of the flows."""
+        segments: list[Segment] = []
+        room = payload_bytes
+        h = self.header_bytes
+        for fq in self.flows:
+            if not fq.bytes:
+                continue
+            q = fq.entries
+            while q and room > h:
+                e = q[0]
+                if e.to_send == 0:  # discarded or lost while queued, removed lazily
+                    q.popleft()
+                    continue
+                take = room - h
+                if take >= e.to_send:
+                    take = e.to_send
+                    q.popleft()
+                    self.packets -= 1
+                e.to_send -= take
+                fq.bytes -= take
+                self.bytes -= take
+                room -= take + h
+                segments.append((e, take))
+            if room <= h:
+                break
+        return segments
+
+    def drop_unsent(self, entry: PacketEntry, flow_name: str) -> None:
+        """Forget the bytes of ``entry`` not yet sent (discarded or already lost).
+
+        The entry leaves its queue lazily: ``fill`` skips entries with nothing to send.
+        """
+        if entry.to_send:
+            self.by_name[flow_name].bytes -= entry.to_send
+            self.bytes -= entry.to_send
+            self.packets -= 1
+            entry.to_send = 0
