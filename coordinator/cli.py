@@ -113,6 +113,30 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_submit(args: argparse.Namespace) -> int:
+    from coordinator.client import ApiError, call, follow, wait_healthy
+
+    try:
+        wait_healthy(args.api, args.wait_s)
+        body = {"scenario": args.scenario, "overrides": args.set or []}
+        run_id = call(args.api, "POST", "/runs", body)["run_id"]
+        print(f"run {run_id} submitted to {args.api}", file=sys.stderr)
+        if not args.follow:
+            print(run_id)
+            return 0
+        run = follow(args.api, run_id)
+    except ApiError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    k = run.get("kpis") or {}
+    if run["status"] != "completed":
+        print(f"run {run_id} {run['status']}: {run.get('reason')}", file=sys.stderr)
+        for line in k.get("log_tail") or []:
+            print(f"  | {line}", file=sys.stderr)
+    print(kpi_table({**k, "status": run["status"], "reason": run.get("reason")}))
+    return 0 if run["status"] == "completed" else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="cosim5g", description="5G factory co-simulator")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -134,6 +158,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--db", default="results/cosim5g.db")
     s.add_argument("--scenarios", default="configs/scenarios")
     s.set_defaults(fn=cmd_serve)
+    c = sub.add_parser("submit", help="start a run through the coordinator's REST API")
+    c.add_argument("scenario", help="name of a scenario in the coordinator's configs/scenarios/")
+    c.add_argument("--api", default="http://127.0.0.1:8080")
+    c.add_argument("--set", action="append", metavar="FIELD=VALUE")
+    c.add_argument("--follow", action="store_true", help="wait for the end and print the KPIs")
+    c.add_argument("--wait-s", type=float, default=120.0, help="how long to wait for the API")
+    c.set_defaults(fn=cmd_submit)
     n = sub.add_parser("netsim", help="standalone 5G NR cell (calibration, benchmarks)", add_help=False)
     n.add_argument("rest", nargs=argparse.REMAINDER)
     n.set_defaults(fn=cmd_netsim)

@@ -3,37 +3,19 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
-from typing import Any
 
 import pytest
 
+from coordinator.client import ApiError
+from coordinator.client import request as call
 from coordinator.run import free_port
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
-
-
-def call(base: str, method: str, path: str, body: Any = None) -> tuple[int, Any]:
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(base + path, data=data, method=method,
-                                 headers={"content-type": "application/json"})
-    try:
-        with urllib.request.urlopen(req, timeout=10) as resp:
-            raw = resp.read().decode()
-            status = resp.status
-    except urllib.error.HTTPError as err:
-        raw, status = err.read().decode(), err.code
-    try:
-        return status, json.loads(raw)
-    except json.JSONDecodeError:
-        return status, raw
 
 
 @pytest.fixture
@@ -50,7 +32,7 @@ def server(tmp_path: Path):
         try:
             if call(base, "GET", "/healthz")[0] == 200:
                 break
-        except OSError:
+        except ApiError:
             time.sleep(0.2)
     yield base
     proc.terminate()

@@ -1,0 +1,74 @@
+"""A small client of the coordinator's REST API: submit a run, follow it, print its KPIs.
+
+Used by ``make up`` (``cosim5g submit --follow``) against the coordinator started by compose.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import urllib.error
+import urllib.request
+from typing import Any
+
+
+class ApiError(RuntimeError):
+    pass
+
+
+def request(base: str, method: str, path: str, body: Any = None, timeout_s: float = 30.0) -> tuple[int, Any]:
+    """HTTP status and decoded JSON body (or text) of one API call; raises ApiError if unreachable."""
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(base.rstrip("/") + path, data=data, method=method,
+                                 headers={"content-type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout_s) as resp:
+            status, raw = resp.status, resp.read().decode()
+    except urllib.error.HTTPError as err:
+        status, raw = err.code, err.read().decode()
+    except (urllib.error.URLError, OSError) as err:
+        raise ApiError(f"coordinator at {base} is not reachable: {err}") from None
+    try:
+        return status, json.loads(raw)
+    except json.JSONDecodeError:
+        return status, raw
+
+
+def call(base: str, method: str, path: str, body: Any = None, timeout_s: float = 30.0) -> Any:
+    """The decoded body of a successful call; ApiError with the server's explanation otherwise."""
+    status, payload = request(base, method, path, body, timeout_s)
+    if status < 400:
+        return payload
+    detail = payload.get("detail", payload) if isinstance(payload, dict) else payload
+    if isinstance(detail, list):
+        detail = "; ".join(f"{d.get('field', d.get('loc'))}: {d.get('message', d.get('msg'))}" for d in detail)
+    raise ApiError(f"{method} {path}: HTTP {status}: {detail}")
+
+
+def wait_healthy(base: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    last = ""
+    while time.monotonic() < deadline:
+        try:
+            if call(base, "GET", "/healthz", timeout_s=5).get("status") == "ok":
+                return
+        except ApiError as exc:
+            last = str(exc)
+        time.sleep(1.0)
+    raise ApiError(f"coordinator not healthy within {timeout_s:.0f} s ({last})")
+
+
+def follow(base: str, run_id: str, stream: Any = sys.stderr, poll_s: float = 1.0) -> dict[str, Any]:
+    """Poll a run until it ends, showing simulated time and real-time factor; the run record."""
+    while True:
+        run = call(base, "GET", f"/runs/{run_id}")
+        if run["status"] not in ("pending", "running"):
+            stream.write("\n")
+            return dict(run)
+        sim = run.get("sim_time_s") or 0.0
+        total = run["config"]["duration_s"]
+        rtf = run.get("real_time_factor") or 0.0
+        stream.write(f"\r{run_id}: {run['status']:<8} sim {sim:7.2f}/{total:.2f} s  rtf {rtf:5.2f}")
+        stream.flush()
+        time.sleep(poll_s)
