@@ -89,8 +89,10 @@ def execute_run(
     """Run ``scenario`` to its end; never raises for a failing run (see ``RunResult.status``)."""
     if launcher is None:
         if scenario.runtime == "docker":
-            from coordinator.runtime_docker import DockerLauncher
-            launcher = DockerLauncher()
+            from coordinator.runtime_docker import DockerLauncher, docker_client, reap_dead_runs
+            client = docker_client()
+            reap_dead_runs(client)  # leftovers of runs whose coordinator died
+            launcher = DockerLauncher(client)
         else:
             from coordinator.runtime_process import ProcessLauncher
             launcher = ProcessLauncher()

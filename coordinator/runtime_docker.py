@@ -1,0 +1,614 @@
+"""The docker runtime: one cgroup-limited, unprivileged container per federate on a per-run network.
+
+``DockerLauncher`` implements ``coordinator.launcher.Launcher`` with the docker SDK
+(DESIGN.md sections 5 and 8):
+
+- one bridge network ``cosim5g-<run_id>`` and one container ``cosim5g-<run_id>-<federate>`` per
+  federate, all labelled ``cosim5g.run_id=<run_id>`` (containers also ``cosim5g.federate``,
+  ``cosim5g.role`` and ``cosim5g.owner``, the coordinator process that started them);
+- the node profile becomes the cgroup: CFS period 10 ms (a short period keeps a throttled job's
+  wall time close to cpu_time / cpus, see DESIGN.md section 5), quota = cpus x period, memory
+  limit with no swap;
+- no privileges, every capability dropped, no-new-privileges, read-only root with a tmpfs /tmp,
+  and one bind mount: the run directory, read-write at the same path as on the coordinator's
+  side so every path in a message or a config means the same file everywhere.
+
+How federates reach the coordinator's zenoh router (docs/docker.md has the picture):
+
+- coordinator on the host (CLI): containers get ``host.docker.internal`` mapped to the host
+  (``extra_hosts: host-gateway``, i.e. the default bridge's gateway, docker0). The router must
+  listen there: ``router_listen_endpoint(port)`` gives ``tcp/<docker0 address>:<port>``, which
+  keeps the router off the host's other interfaces. Federates connect to
+  ``tcp/host.docker.internal:<port>``.
+- coordinator in a container (docker-compose.yml): ``COSIM5G_ROUTER_HOST`` names the network
+  alias of the coordinator (``coordinator``). Running containers labelled
+  ``cosim5g.attach=run-networks`` (the compose coordinator and Prometheus) are connected to each
+  run network, under the alias in their ``cosim5g.alias`` label, for the run's lifetime. The
+  router listens on ``tcp/0.0.0.0:<port>`` inside its container; federates connect to
+  ``tcp/coordinator:<port>``.
+
+``reap_dead_runs(client)`` removes the containers and networks of runs whose coordinator is gone;
+call it when a coordinator starts. ``container_cpu_throttling(container)`` reads a container's
+CFS counters from the host side (docker stats API, cgroup v1 and v2 alike).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import re
+import signal
+import socket
+import struct
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import docker
+from docker.errors import APIError, DockerException, ImageNotFound, NotFound
+
+from coordinator.launcher import FederateSpec, Launcher, NodeLimits
+
+log = logging.getLogger(__name__)
+
+RUNTIME_IMAGE = "cosim5g/runtime:latest"
+
+LABEL_RUN = "cosim5g.run_id"
+LABEL_FEDERATE = "cosim5g.federate"
+LABEL_ROLE = "cosim5g.role"
+LABEL_OWNER = "cosim5g.owner"
+LABEL_METRICS_PORT = "cosim5g.metrics_port"
+# Platform containers (compose coordinator, Prometheus) that must reach every run's federates.
+LABEL_ATTACH = "cosim5g.attach"
+ATTACH_RUN_NETWORKS = "run-networks"
+LABEL_ALIAS = "cosim5g.alias"
+
+CFS_PERIOD_US = 10_000
+# The kernel refuses a CFS quota below 1 ms: at a 10 ms period the smallest node is 0.1 cpus.
+CFS_MIN_QUOTA_US = 1_000
+# The image's unprivileged user (images/runtime.Dockerfile).
+IMAGE_UID = 10001
+IMAGE_GID = 10001
+HOST_ALIAS = "host.docker.internal"
+TMPFS_TMP = "rw,nosuid,nodev,noexec,size=256m"
+PIDS_LIMIT = 512
+_SIOCGIFADDR = 0x8915  # ioctl: an interface's IPv4 address
+# Docker object names: [a-zA-Z0-9][a-zA-Z0-9_.-]*; run ids and federate names become part of them.
+_NAME_RE = re.compile(r"^[a-zA-Z0-9][a-zA-Z0-9_.-]*$")
+
+
+class DockerRuntimeError(RuntimeError):
+    """The docker runtime could not do what was asked; the message says what and how to fix it."""
+
+
+def docker_client(timeout_s: int = 30) -> Any:
+    """A docker SDK client for the daemon of the environment (DOCKER_HOST or the local socket)."""
+    try:
+        client = docker.from_env(timeout=timeout_s)
+        client.ping()
+    except DockerException as e:
+        where = os.environ.get("DOCKER_HOST", "unix:///var/run/docker.sock")
+        raise DockerRuntimeError(
+            f"Docker daemon not reachable at {where}: {e}. Start it, or use the `process` runtime."
+        ) from e
+    return client
+
+
+def cfs_quota_us(cpus: float, period_us: int = CFS_PERIOD_US) -> int:
+    """The CFS quota (us per ``period_us``) that gives ``cpus`` host cores."""
+    if cpus <= 0:
+        raise ValueError(f"cpus must be > 0, got {cpus}")
+    quota = int(round(cpus * period_us))
+    if quota < CFS_MIN_QUOTA_US:
+        raise ValueError(
+            f"cpus={cpus} gives a CFS quota of {quota} us per {period_us} us period, below the "
+            f"kernel's minimum of {CFS_MIN_QUOTA_US} us: use cpus >= "
+            f"{CFS_MIN_QUOTA_US / period_us:g}"
+        )
+    return quota
+
+
+def cgroup_limits(limits: NodeLimits) -> dict[str, Any]:
+    """docker SDK ``containers.run`` keyword arguments for a node profile."""
+    kw: dict[str, Any] = {}
+    if limits.cpus is not None:
+        kw["cpu_period"] = CFS_PERIOD_US
+        kw["cpu_quota"] = cfs_quota_us(limits.cpus)
+    if limits.mem_mb is not None:
+        if limits.mem_mb < 6:
+            raise ValueError(f"mem_mb={limits.mem_mb}: docker needs at least 6 MiB")
+        kw["mem_limit"] = f"{limits.mem_mb}m"
+        # Same value: no swap on top of the limit, so an over-budget node is OOM-killed (and
+        # reported as such) instead of silently slowing down.
+        kw["memswap_limit"] = f"{limits.mem_mb}m"
+    return kw
+
+
+# ---------------------------------------------------------------------------------------------
+# Owner identity: which coordinator process started a run's containers (for the reaper)
+# ---------------------------------------------------------------------------------------------
+
+def _proc_start_ticks(pid: int) -> str | None:
+    """The start time of ``pid`` in clock ticks since boot (tells a reused pid apart)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    # Field 22; the command name (field 2) may hold spaces, so split after its closing ')'.
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def owner_id() -> str:
+    """``<hostname>/<pid>/<start ticks>`` of this process."""
+    pid = os.getpid()
+    return f"{socket.gethostname()}/{pid}/{_proc_start_ticks(pid) or '?'}"
+
+
+def _owner_alive(owner: str, running_container_ids: Iterable[str]) -> bool:
+    """Whether the coordinator that labelled a run with ``owner`` is still alive.
+
+    Same host namespace (same hostname): its pid must exist with the same start time. Another
+    hostname is usually a coordinator in a container (a container's hostname is its short id):
+    alive while that container runs. Anything else cannot be checked from here and counts as
+    dead: one coordinator per Docker daemon is the supported setup.
+    """
+    try:
+        host, pid_s, ticks = owner.split("/")
+        pid = int(pid_s)
+    except ValueError:
+        return False
+    if host == socket.gethostname():
+        return _proc_start_ticks(pid) == ticks
+    return any(cid.startswith(host) for cid in running_container_ids)
+
+
+def reap_dead_runs(client: Any, alive_run_ids: Iterable[str] = ()) -> list[str]:
+    """Remove the containers and networks of runs that no live coordinator owns.
+
+    A run is alive if its id is in ``alive_run_ids`` or the coordinator process that started it
+    is still alive (``cosim5g.owner`` label). Call at coordinator start-up, when no run of this
+    coordinator exists yet. Returns the reaped run ids.
+    """
+    alive = set(alive_run_ids)
+    containers = client.containers.list(all=True, filters={"label": LABEL_RUN})
+    networks = client.networks.list(filters={"label": LABEL_RUN})
+    running_ids = [c.id for c in client.containers.list()]
+    owners: dict[str, set[str]] = {}
+    for c in containers:
+        owners.setdefault(c.labels[LABEL_RUN], set()).add(c.labels.get(LABEL_OWNER, ""))
+    for n in networks:
+        owners.setdefault(n.attrs["Labels"][LABEL_RUN], set()).add(
+            n.attrs["Labels"].get(LABEL_OWNER, ""))
+    dead = sorted(
+        run for run, who in owners.items()
+        if run not in alive and not any(_owner_alive(o, running_ids) for o in who if o)
+    )
+    for run in dead:
+        log.warning("reaping leftovers of dead run %s", run)
+        _remove_run_objects(client, run)
+    return dead
+
+
+def _remove_run_objects(client: Any, run_id: str) -> list[str]:
+    """Force-remove every container, network and volume labelled with ``run_id``; returns errors."""
+    errors: list[str] = []
+    selector = {"label": f"{LABEL_RUN}={run_id}"}
+    for c in client.containers.list(all=True, filters=selector):
+        try:
+            c.remove(force=True, v=True)
+        except NotFound:
+            pass
+        except APIError as e:
+            errors.append(f"container {c.name}: {e.explanation or e}")
+    for n in client.networks.list(filters=selector):
+        try:
+            n.reload()
+            # Platform containers attached for the run's lifetime would block the removal.
+            for cid in (n.attrs.get("Containers") or {}):
+                try:
+                    n.disconnect(cid, force=True)
+                except (NotFound, APIError):
+                    pass
+            n.remove()
+        except NotFound:
+            pass
+        except APIError as e:
+            errors.append(f"network {n.name}: {e.explanation or e}")
+    # We create none, but a federate image with a VOLUME would leave anonymous ones behind.
+    for v in client.volumes.list(filters=selector):
+        try:
+            v.remove(force=True)
+        except NotFound:
+            pass
+        except APIError as e:
+            errors.append(f"volume {v.name}: {e.explanation or e}")
+    return errors
+
+
+# ---------------------------------------------------------------------------------------------
+# Host-side CPU accounting of a container
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CpuThrottling:
+    """CFS counters of a container: usage and throttling since it started."""
+
+    usage_ns: int  # CPU time consumed by every task of the container
+    periods: int  # CFS periods in which the container was runnable
+    throttled_periods: int  # periods in which it hit its quota
+    throttled_ns: int  # total time its run queues spent throttled
+
+
+def container_cpu_throttling(container: Any) -> CpuThrottling:
+    """Read a container's CFS counters through the daemon (``docker stats``, one shot).
+
+    Works from the host or from the compose coordinator alike and under cgroup v1 and v2: the
+    daemon reads cpu.stat (v1: ``throttled_time`` ns, v2: ``throttled_usec``) and reports ns.
+    """
+    stats = container.stats(stream=False, one_shot=True)
+    cpu = stats.get("cpu_stats") or {}
+    thr = cpu.get("throttling_data") or {}
+    return CpuThrottling(
+        usage_ns=int((cpu.get("cpu_usage") or {}).get("total_usage", 0)),
+        periods=int(thr.get("periods", 0)),
+        throttled_periods=int(thr.get("throttled_periods", 0)),
+        throttled_ns=int(thr.get("throttled_time", 0)),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The launcher
+# ---------------------------------------------------------------------------------------------
+
+def _default_bridge_address(client: Any) -> str | None:
+    """The IPv4 address of the default bridge on this host: what ``host-gateway`` maps to."""
+    try:
+        bridge = client.networks.get("bridge").attrs
+    except NotFound:
+        return None
+    for cfg in (bridge.get("IPAM") or {}).get("Config") or []:
+        gw = cfg.get("Gateway", "")
+        if gw and ":" not in gw:
+            return str(gw)
+    # Docker 20.10 often leaves the gateway out of the default bridge's IPAM config: ask the
+    # kernel for the bridge interface's address (only meaningful on the daemon's host).
+    ifname = (bridge.get("Options") or {}).get("com.docker.network.bridge.name", "docker0")
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            req = struct.pack("256s", ifname.encode()[:15])
+            return socket.inet_ntoa(fcntl.ioctl(s.fileno(), _SIOCGIFADDR, req)[20:24])
+    except OSError:
+        return None
+
+
+def _exit_reason(state: dict[str, Any], limits: NodeLimits | None) -> str:
+    """A human reason for a stopped container's state (``container.attrs["State"]``)."""
+    code = state.get("ExitCode")
+    reason = f"exited with code {code}"
+    if state.get("OOMKilled"):
+        mem = f" of {limits.mem_mb} MiB" if limits and limits.mem_mb else ""
+        reason += f" (OOM-killed: memory limit{mem} exceeded)"
+    elif isinstance(code, int) and code > 128:
+        try:
+            reason += f" (killed by {signal.Signals(code - 128).name})"
+        except ValueError:
+            pass
+    if state.get("Error"):
+        reason += f": {state['Error']}"
+    return reason
+
+
+class DockerLauncher(Launcher):
+    """Runs one run's federates as containers of ``image`` (one launcher per run)."""
+
+    def __init__(self, client: Any | None = None, image: str = RUNTIME_IMAGE,
+                 router_host: str | None = None, metrics_port: int | None = None,
+                 log_tail_on_stop: int = 200, poll_interval_s: float = 0.25) -> None:
+        """
+        ``router_host``: how federates name the router's host; default ``COSIM5G_ROUTER_HOST``,
+        else ``host.docker.internal`` (coordinator on the host). ``metrics_port``: a port on
+        which federates serve Prometheus metrics, advertised to Prometheus' docker discovery
+        by a label (default ``COSIM5G_FEDERATE_METRICS_PORT``; none: not scraped).
+        ``poll_interval_s``: how stale ``dead()`` may be; a death is seen within this delay.
+        """
+        self.client = client if client is not None else docker_client()
+        self.image = image
+        self.router_host = router_host or os.environ.get("COSIM5G_ROUTER_HOST") or HOST_ALIAS
+        port = metrics_port or os.environ.get("COSIM5G_FEDERATE_METRICS_PORT")
+        self.metrics_port = int(port) if port else None
+        self.log_tail_on_stop = log_tail_on_stop
+        self.poll_interval_s = poll_interval_s
+        self._last_poll = -float("inf")
+        self.run_id: str | None = None
+        self.run_dir: Path | None = None
+        self.network: Any = None
+        self._containers: dict[str, Any] = {}  # federate name -> Container
+        self._limits: dict[str, NodeLimits] = {}
+        self._dead: dict[str, str] = {}
+        self._logs: dict[str, list[str]] = {}  # last lines kept when containers are removed
+        self._attached: list[Any] = []  # platform containers connected to the run network
+        self._stopped = False
+
+    # -- endpoints ----------------------------------------------------------------------------
+
+    @property
+    def coordinator_on_host(self) -> bool:
+        return self.router_host == HOST_ALIAS
+
+    def router_endpoint_for_federates(self, router_port: int) -> str:
+        return f"tcp/{self.router_host}:{router_port}"
+
+    def router_listen_endpoint(self, router_port: int) -> str:
+        """Where the coordinator's router must listen so that the federates reach it.
+
+        On the host: the default bridge's gateway (docker0), which ``host.docker.internal``
+        resolves to inside the containers. In a container: every interface of the container,
+        the run networks being attached to it at ``start``.
+        """
+        if not self.coordinator_on_host:
+            return f"tcp/0.0.0.0:{router_port}"
+        gateway = _default_bridge_address(self.client)
+        if gateway is None:
+            raise DockerRuntimeError(
+                "cannot find the address of Docker's default bridge (docker0), which "
+                f"{HOST_ALIAS} resolves to inside the containers; run the coordinator with "
+                "docker-compose.yml instead, or check `docker network inspect bridge`")
+        return f"tcp/{gateway}:{router_port}"
+
+    # -- start --------------------------------------------------------------------------------
+
+    def start(self, specs: list[FederateSpec], run_id: str, endpoint: str, scenario_path: Path,
+              run_dir: Path) -> None:
+        scenario = Path(scenario_path).absolute()
+        rundir = Path(run_dir).absolute()
+        if not scenario.is_relative_to(rundir):
+            raise DockerRuntimeError(
+                f"scenario {scenario} is outside the run directory {rundir}: containers see only "
+                "the run directory; write the resolved scenario into it")
+        self._start(specs, run_id, rundir, lambda spec: ["python", *spec.argv(
+            run_id, endpoint, str(scenario), str(rundir))])
+
+    def _start(self, specs: list[FederateSpec], run_id: str, run_dir: Path,
+               command: Callable[[FederateSpec], list[str]]) -> None:
+        """Start ``specs`` with ``command(spec)`` as their command (tests pass a stand-in)."""
+        if self.run_id is not None:
+            raise DockerRuntimeError(f"this launcher already ran run {self.run_id}: use a new one")
+        names = [s.name for s in specs]
+        for label in [run_id, *names]:
+            if not _NAME_RE.match(label):
+                raise ValueError(f"{label!r} cannot be part of a docker name: use letters, "
+                                 "digits, '_', '.', '-' and start with a letter or digit")
+        if len(set(names)) != len(names):
+            raise ValueError(f"federate names must be unique, got {names}")
+        limits_kw = {s.name: cgroup_limits(s.limits) for s in specs}  # validate before creating
+        try:
+            self.client.images.get(self.image)
+        except ImageNotFound as e:
+            raise DockerRuntimeError(f"image {self.image} missing: run `make images`") from e
+        if not run_dir.is_dir():
+            raise DockerRuntimeError(f"run directory {run_dir} does not exist")
+        user = self._user_for(run_dir)
+
+        owner = owner_id()
+        net_labels = {LABEL_RUN: run_id, LABEL_OWNER: owner}
+        try:
+            network = self.client.networks.create(
+                f"cosim5g-{run_id}", driver="bridge", labels=net_labels, check_duplicate=True)
+        except APIError as e:
+            # Not ours to clean up: the name may belong to a live run with the same id.
+            raise DockerRuntimeError(
+                f"cannot create network cosim5g-{run_id}: {e.explanation or e} (a leftover of "
+                "an earlier run with this id? reap_dead_runs removes those)") from e
+        # From here on, stop() removes whatever carries this run's label.
+        self.run_id, self.run_dir, self.network = run_id, run_dir, network
+        try:
+            self._attach_platform_containers()
+            for spec in specs:
+                self._run_one(spec, run_id, run_dir, command(spec), user, owner,
+                              limits_kw[spec.name])
+        except BaseException:
+            self.stop(grace_s=0)
+            raise
+
+    def _user_for(self, run_dir: Path) -> str:
+        """The uid:gid federates run as: whoever owns the run directory, never root.
+
+        Results then belong to the researcher who owns the run directory. A root coordinator
+        with a root-owned run directory hands the directory to the image's user instead.
+        """
+        st = run_dir.stat()
+        if st.st_uid != 0:
+            return f"{st.st_uid}:{st.st_gid}"
+        if os.geteuid() != 0:
+            raise DockerRuntimeError(
+                f"run directory {run_dir} belongs to root: federates do not run as root; "
+                "give the directory to the user running the coordinator")
+        for path in [run_dir, *run_dir.rglob("*")]:
+            os.chown(path, IMAGE_UID, IMAGE_GID, follow_symlinks=False)
+        return f"{IMAGE_UID}:{IMAGE_GID}"
+
+    def _attach_platform_containers(self) -> None:
+        """Connect the running platform containers (compose coordinator, Prometheus) to the run
+        network, so the federates reach the router and Prometheus reaches the federates."""
+        found_router = self.coordinator_on_host
+        for c in self.client.containers.list(filters={"label": f"{LABEL_ATTACH}={ATTACH_RUN_NETWORKS}"}):
+            alias = c.labels.get(LABEL_ALIAS)
+            self.network.connect(c, aliases=[alias] if alias else None)
+            self._attached.append(c)
+            found_router = found_router or alias == self.router_host
+        if not found_router:
+            raise DockerRuntimeError(
+                f"federates are to reach the router at {self.router_host!r} (COSIM5G_ROUTER_HOST) "
+                f"but no running container is labelled {LABEL_ATTACH}={ATTACH_RUN_NETWORKS} and "
+                f"{LABEL_ALIAS}={self.router_host}: start the platform with docker-compose.yml, "
+                "or unset COSIM5G_ROUTER_HOST when the coordinator runs on the host")
+
+    def _run_one(self, spec: FederateSpec, run_id: str, run_dir: Path, command: list[str],
+                 user: str, owner: str, limits_kw: dict[str, Any]) -> None:
+        labels = {LABEL_RUN: run_id, LABEL_FEDERATE: spec.name, LABEL_ROLE: spec.role,
+                  LABEL_OWNER: owner}
+        if self.metrics_port:
+            labels[LABEL_METRICS_PORT] = str(self.metrics_port)
+        env = {
+            "MUJOCO_GL": "egl",
+            "PYOPENGL_PLATFORM": "egl",
+            "HOME": "/tmp",  # the root is read-only; an arbitrary uid has no home anyway
+            "COSIM5G_RUN_ID": run_id,
+            "COSIM5G_FEDERATE": spec.name,
+        }
+        if spec.limits.cpus is not None:
+            env["COSIM5G_NODE_CPUS"] = repr(spec.limits.cpus)
+        if self.metrics_port:
+            env["COSIM5G_METRICS_PORT"] = str(self.metrics_port)  # services.common.metrics
+        extra_hosts = {HOST_ALIAS: "host-gateway"} if self.coordinator_on_host else None
+        try:
+            container = self.client.containers.run(
+                self.image,
+                command=command,
+                name=f"cosim5g-{run_id}-{spec.name}",
+                hostname=spec.name,
+                labels=labels,
+                environment=env,
+                user=user,
+                detach=True,
+                network=self.network.name,
+                extra_hosts=extra_hosts,
+                volumes={str(run_dir.resolve()): {"bind": str(run_dir), "mode": "rw"}},
+                tmpfs={"/tmp": TMPFS_TMP},
+                read_only=True,
+                privileged=False,
+                cap_drop=["ALL"],
+                security_opt=["no-new-privileges"],
+                pids_limit=PIDS_LIMIT,
+                **limits_kw,
+            )
+        except APIError as e:
+            raise DockerRuntimeError(
+                f"cannot start federate {spec.name} ({spec.role}): {e.explanation or e}") from e
+        self._containers[spec.name] = container
+        self._limits[spec.name] = spec.limits
+
+    # -- supervision --------------------------------------------------------------------------
+
+    def container(self, name: str) -> Any:
+        """The container of federate ``name`` (for inspection and tests)."""
+        return self._containers[name]
+
+    def dead(self) -> dict[str, str]:
+        """Federates that have exited. Cheap to call in a tight loop: the daemon is asked at most
+        every ``poll_interval_s`` (the conductor calls this before every control message, and one
+        inspect per container costs ~1.5 ms: polling each time would dominate a window)."""
+        if self._stopped:  # our own stop() removed the containers: nothing new died
+            return dict(self._dead)
+        now = time.monotonic()
+        if self.run_id is None or now - self._last_poll < self.poll_interval_s:
+            return dict(self._dead)
+        self._last_poll = now
+        try:
+            listed = self.client.containers.list(
+                all=True, sparse=True, filters={"label": f"{LABEL_RUN}={self.run_id}"})
+        except (APIError, DockerException) as e:
+            log.warning("run %s: cannot ask the Docker daemon for container states: %s",
+                        self.run_id, e)
+            return dict(self._dead)
+        state_by_id = {c.id: c.attrs.get("State") for c in listed}
+        for name, c in self._containers.items():
+            if name in self._dead:
+                continue
+            state = state_by_id.get(c.id)
+            if state is None:
+                self._dead[name] = "container removed outside cosim5g"
+            elif state in ("exited", "dead"):
+                try:
+                    c.reload()  # the list has no exit code / OOM flag: inspect the dead only
+                    self._dead[name] = _exit_reason(c.attrs.get("State") or {},
+                                                    self._limits.get(name))
+                except NotFound:
+                    self._dead[name] = "container removed outside cosim5g"
+        return dict(self._dead)
+
+    def last_log_lines(self, name: str, n: int = 20) -> list[str]:
+        if name not in self._containers:
+            raise KeyError(f"no federate {name!r} in run {self.run_id}; "
+                           f"known: {sorted(self._containers)}")
+        try:
+            raw = self._containers[name].logs(stdout=True, stderr=True, tail=n)
+        except NotFound:
+            return self._logs.get(name, [])[-n:] if n > 0 else []
+        return raw.decode("utf-8", errors="replace").splitlines()[-n:] if n > 0 else []
+
+    # -- stop ---------------------------------------------------------------------------------
+
+    def stop(self, grace_s: float = 5.0) -> None:
+        if self._stopped:
+            # Second call: the containers are gone; only sweep by label once more, in case.
+            if self.run_id is not None:
+                for err in _remove_run_objects(self.client, self.run_id):
+                    log.error("run %s: could not remove %s", self.run_id, err)
+            return
+        self._last_poll = -float("inf")
+        self.dead()  # record how federates ended before our SIGTERM muddles the picture
+        self._stopped = True
+        containers = dict(self._containers)
+        # SIGTERM everything at once (tini forwards it), so the grace period is paid once.
+        for c in containers.values():
+            try:
+                c.kill(signal="SIGTERM")
+            except (NotFound, APIError):
+                pass  # already stopped or gone
+        deadline = time.monotonic() + max(grace_s, 0.0)
+        pending = dict(containers)
+        while pending and time.monotonic() < deadline:
+            for name, c in list(pending.items()):
+                try:
+                    c.reload()
+                    if c.status not in ("running", "restarting", "paused"):
+                        del pending[name]
+                except NotFound:
+                    del pending[name]
+            if pending:
+                time.sleep(0.1)
+        for name, c in containers.items():
+            self._keep_logs(name, c)
+        errors: list[str] = []
+        for name, c in containers.items():
+            try:
+                c.remove(force=True, v=True)  # SIGKILLs what is still running
+            except NotFound:
+                pass
+            except APIError as e:
+                errors.append(f"container of {name}: {e.explanation or e}")
+        if self.network is not None:
+            for c in self._attached:
+                try:
+                    self.network.disconnect(c, force=True)
+                except (NotFound, APIError):
+                    pass
+            self._attached.clear()
+        if self.run_id is not None:
+            # By label as well: catches anything created before a failure recorded it.
+            errors += _remove_run_objects(self.client, self.run_id)
+        for err in errors:
+            log.error("run %s: could not remove %s", self.run_id, err)
+
+    def _keep_logs(self, name: str, container: Any) -> None:
+        """Keep a federate's log past its container: last lines in memory, all in the run dir."""
+        try:
+            raw = container.logs(stdout=True, stderr=True)
+        except (NotFound, APIError):
+            return
+        text = raw.decode("utf-8", errors="replace")
+        self._logs[name] = text.splitlines()[-self.log_tail_on_stop:]
+        if self.run_dir is None or not text:
+            return
+        try:
+            logs_dir = self.run_dir / "logs"
+            logs_dir.mkdir(exist_ok=True)
+            tmp = logs_dir / f".{name}.container.log.tmp"
+            tmp.write_text(text)
+            tmp.replace(logs_dir / f"{name}.container.log")
+        except OSError as e:
+            log.warning("could not save the log of %s into %s: %s", name, self.run_dir, e)
