@@ -9,7 +9,17 @@ RESULTS ?= results/runs
 export MUJOCO_GL ?= egl
 
 .DEFAULT_GOAL := help
-.PHONY: help install run smoke test test-unit test-integration lint bench measure-frames clean
+COMPOSE := $(shell docker compose version >/dev/null 2>&1 && echo "docker compose" || echo docker-compose)
+API ?= http://127.0.0.1:8080
+# Compose needs the docker socket's group (the coordinator starts run containers) and runs the
+# coordinator as the invoking user so that results/ stays theirs -- never as root: a root caller's
+# results/ is handed to the image's user (uid 10001).
+PLATFORM_UID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || echo $$u)
+PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
+COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
+
+.PHONY: help install run smoke test test-unit test-integration lint bench bench-docker images up down \
+	calibrate measure-frames clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
@@ -43,6 +53,26 @@ test-integration: $(BIN)/cosim5g ## runs over real zenoh and real processes
 
 bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
+
+images: $(BIN)/cosim5g ## build the runtime and Prometheus images without a registry (see docs/docker.md)
+	PYTHON=$(PYTHON) bash images/build.sh
+
+up: images ## start the platform (coordinator API + Prometheus) and run SCENARIO in containers
+	mkdir -p results/runs
+	chown -R $(PLATFORM_UID):$(PLATFORM_GID) results
+	$(COMPOSE_ENV) $(COMPOSE) up -d
+	$(BIN)/cosim5g submit $(SCENARIO) --set runtime=docker --follow --api $(API)
+	@echo "platform still up: API $(API), Prometheus http://127.0.0.1:9090; 'make down' removes it"
+
+down: ## stop the platform and remove its containers, networks and volumes (and leftovers of runs)
+	-$(COMPOSE_ENV) $(COMPOSE) down -v --remove-orphans
+	-$(BIN)/python -c "from coordinator.runtime_docker import docker_client, reap_dead_runs; reap_dead_runs(docker_client())"
+
+calibrate: images ## real workloads under cpus 1.0/0.5/0.25: wall and cpu-mode vs ideal (results/bench/)
+	$(BIN)/python -m coordinator.calibrate
+
+bench-docker: images ## make bench plus the smoke run in containers: docker/process real-time factor
+	$(BIN)/python -m benchmarks.platform_bench --docker
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
 	$(BIN)/python -m services.camera.measure

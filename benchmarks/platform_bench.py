@@ -65,8 +65,8 @@ def windows_over_zenoh(federates: int, windows: int) -> float:
     return rate
 
 
-def smoke_rtf(results: Path) -> dict:
-    sc = load_scenario(ROOT / "configs" / "scenarios" / "smoke.yaml")
+def smoke_rtf(results: Path, runtime: str = "process") -> dict:
+    sc = load_scenario(ROOT / "configs" / "scenarios" / "smoke.yaml", [f"runtime={runtime}"])
     r = execute_run(sc, results)
     return {"status": r.status, "rtf": r.kpis["real_time_factor"], "windows": r.kpis["windows"],
             "sim_s": r.kpis["sim_time_s"], "wall_s": r.kpis["wall_time_s"]}
@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--windows", type=int, default=3000)
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
     ap.add_argument("--skip-smoke", action="store_true")
+    ap.add_argument("--docker", action="store_true", help="also run the smoke scenario in containers")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = [
@@ -85,10 +86,16 @@ def main(argv: list[str] | None = None) -> int:
         ("conductor, zenoh router, 6 idle federate processes", "windows/s",
          windows_over_zenoh(6, args.windows)),
     ]
-    smoke = None
+    smoke: dict[str, dict] = {}
     if not args.skip_smoke:
-        smoke = smoke_rtf(args.out / "runs")
-        rows.append(("smoke scenario (2 detailed loops), process runtime", "real-time factor", smoke["rtf"]))
+        smoke["process"] = smoke_rtf(args.out / "runs")
+        rows.append(("smoke scenario (2 detailed loops), process runtime", "real-time factor",
+                     smoke["process"]["rtf"]))
+        if args.docker:
+            smoke["docker"] = smoke_rtf(args.out / "runs", "docker")
+            rows.append(("smoke scenario, docker runtime", "real-time factor", smoke["docker"]["rtf"]))
+            rows.append(("smoke scenario, docker RTF / process RTF", "ratio",
+                         smoke["docker"]["rtf"] / smoke["process"]["rtf"]))
     width = max(len(r[0]) for r in rows)
     lines = [f"| {'benchmark':<{width}} | {'unit':<16} | {'value':>10} |",
              f"|{'-' * (width + 2)}|{'-' * 18}|{'-' * 12}|"]

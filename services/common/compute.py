@@ -54,7 +54,7 @@ DEFAULT_JOB_MODELS = {
     "compress": JobModel(mean_us=12_000, sd_us=1_500),
     "pose": JobModel(mean_us=3_000, sd_us=400),
     "policy": JobModel(mean_us=50, sd_us=10),
-    "control": JobModel(mean_us=700, sd_us=150),
+    "control": JobModel(mean_us=1_600, sd_us=300),
 }
 
 

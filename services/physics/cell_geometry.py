@@ -5,6 +5,7 @@ node agrees on where the belt, the platform and the camera are (as a calibrated 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,30 +14,33 @@ BELT_TOP_Z = 0.75  # m, belt surface height: a common working height
 BELT_HALF_LENGTH = 0.6  # m, belt runs x in [-0.6, 0.6]
 BELT_HALF_WIDTH = 0.2  # m
 SPAWN_X = -0.55  # m, objects appear at the upstream end
-PLATFORM_CENTRE = (0.0, 0.55)  # m, drop-off platform beside the belt
+PICK_X_RANGE = (-0.40, 0.45)  # m, stretch of belt where the arm may grasp (inside its reach)
+
+# Drop-off platform: beside the belt on the arm's side (5 cm gap to the belt edge), at the upstream
+# end: after a place the cup is already next to where the next part enters the pick window, which
+# takes about a second off the pick-and-place cycle compared with a platform downstream.
+PLATFORM_CENTRE = (-0.45, 0.40)  # m
 PLATFORM_HALF = 0.15  # m, platform is 0.3 x 0.3 m
 PLATFORM_TOP_Z = 0.75  # m
-GANTRY_Z = 1.30  # m, height of the gantry's z-axis origin
-CUP_LENGTH = 0.02  # m, suction cup below the z carriage
-PICK_X_RANGE = (-0.40, 0.45)  # m, stretch of belt where the arm may grasp
-JOINT_RANGES = {"x": (-0.55, 0.55), "y": (-0.25, 0.75), "z": (-0.50, 0.0)}  # m
+
+# The arm (services/physics/models/arm6.xml) stands on a pedestal beside the belt, opposite the
+# middle of the pick window. 0.55 m from the belt axis and 5 cm above the belt keeps every pick
+# point, the platform and the straight moves between them well inside the reach of a UR5e-class
+# arm and away from its singularities (smallest Jacobian singular value >= 0.065 on those paths).
+ARM_BASE_POS = (0.0, 0.55, 0.80)  # m, base mounting flange centre (cell frame)
+ARM_BASE_YAW = math.pi / 2  # rad, base x axis along cell +y
+PEDESTAL_RADIUS = 0.09  # m
+# Tool orientation for every pick and place: a rotation matrix (cell frame, given by rows; its
+# columns are the tool x, y, z axes). The cup points straight down (tool z = -z) and the tool's
+# angle bracket points from the flange towards the belt axis (tool x = -y), so the wrist stays on
+# the arm's side of the part it is picking.
+TOOL_DOWN = ((0.0, -1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+# Where the cup waits for the next part: above the upstream end of the pick window, beside the
+# parts' path so that it does not hide them from the camera.
+HOME_TOOL_POS = (-0.30, 0.15, 1.00)  # m
+
 CAMERA_HEIGHT_ABOVE_BELT = 1.0  # m, camera looks straight down at the belt centre
 CAMERA_X = 0.0  # m
-
-
-def tool_position(q: np.ndarray | list[float]) -> np.ndarray:
-    """Suction-cup tip position (cell frame) for gantry joint positions q = (x, y, z)."""
-    return np.array([q[0], q[1], GANTRY_Z + q[2] - CUP_LENGTH])
-
-
-def joints_for_tool(p: np.ndarray | list[float]) -> np.ndarray:
-    """Inverse kinematics of the Cartesian gantry: joint positions placing the tip at p, clipped
-    to the joint ranges."""
-    q = np.array([p[0], p[1], p[2] - GANTRY_Z + CUP_LENGTH], dtype=float)
-    for i, axis in enumerate("xyz"):
-        lo, hi = JOINT_RANGES[axis]
-        q[i] = min(max(q[i], lo), hi)
-    return q
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ import numpy as np
 from services.common.federate import Federate
 from services.common.messages import Message
 from services.common.tables import write_table
-from services.physics.world import World
+from services.physics.world import World, spawn_plan
 
 log = logging.getLogger(__name__)
 
@@ -46,23 +46,16 @@ class PhysicsFederate(Federate):
         self.noise_rng = self.rng("depth-noise")
         self.frames_sent = 0
         self.snapshot_saved = False
-        period = int(sc.cell.object_period_s * 1e6)
-        jitter = int(sc.cell.object_jitter_s * 1e6)
         for i in range(sc.loops):
-            rng = self.rng(f"spawn-c{i}")
-            t = int(sc.cell.first_object_s * 1e6)
-            while t < sc.duration_us:
-                dt = int(rng.integers(-jitter, jitter + 1)) if jitter else 0
-                at = max(0, (t + dt) // self.step_us * self.step_us)
-                self.schedule(at, self._spawn, i, float(rng.uniform(-0.03, 0.03)))
-                t += period
+            for at, part in spawn_plan(sc, self.rng(f"spawn-c{i}"), self.step_us):
+                self.schedule(at, self._spawn, i, part)
             self.schedule(frame_offset_us(i, sc.loops, self.frame_period, self.step_us), self._frame, i)
         self.schedule(0, self._publish_states)
 
     # ---- events -------------------------------------------------------------------------------
-    def _spawn(self, cell: int, y_offset: float) -> None:
+    def _spawn(self, cell: int, part: dict[str, float]) -> None:
         self.world.advance_to(self.now)
-        self.world.spawn(cell, y_offset_m=y_offset)
+        self.world.spawn(cell, **part)
 
     def _frame(self, loop: int) -> None:
         sc = self.scenario

@@ -1,97 +1,91 @@
-"""Builds the MJCF of the factory hall: N conveyor cells laid out from the scenario.
+"""Builds the factory hall: N conveyor cells laid out from the scenario, composed with mjSpec.
 
-Each cell has a belt, a drop-off platform, a three-axis Cartesian gantry arm with a suction cup
-(position servos, gravity compensated), a pool of object bodies recycled as tasks end, and a
-downward depth camera. Names are ``c<i>_<part>`` so every node can find its cell's parts.
+Each cell has a belt, a drop-off platform, a pedestal, a downward depth camera and a pool of part
+bodies recycled as tasks end; they are generated here as MJCF. The arm is a separate model
+(``models/arm6.xml``, see ``services.physics.arm``) attached once per cell on its pedestal with
+the name prefix ``c<i>_``. Every name is ``c<i>_<part>`` so each node can find its cell's parts.
 """
 
 from __future__ import annotations
 
+import math
+
+import mujoco
+
 from services.common.scenario import Scenario
 from services.physics import cell_geometry as g
+from services.physics.arm import SERVO_LAG_S, arm_spec
 
-OBJECT_POOL = 3  # objects per cell; a belt never holds more at the default periods
+__all__ = ["SERVO_LAG_S", "build_mjcf", "build_model", "build_spec", "object_pool_size", "park_position"]
 
-# Servo gains: stiff enough that the tool lags a 0.2 m/s belt by only a few mm; damping chosen
-# near critical for the carriage masses below.
-SERVO_KP = 20000.0  # N/m
-SERVO_DAMPING = 600.0  # N s/m
-SERVO_LAG_S = SERVO_DAMPING / SERVO_KP  # steady-state lag of a position servo to a ramp
+# Parts waiting in a cell's pool are parked below the floor, without contacts and with their
+# weight compensated, so they cost the solver nothing and no camera sees them.
+PARK_Z = -0.5  # m
 
 
-def _cell_xml(i: int, x: float, y: float, sc: Scenario) -> tuple[str, str, str]:
-    """(worldbody xml, actuator xml, equality xml) of cell ``i`` centred at (x, y)."""
-    size = sc.cell.object_size_m
-    h = size / 2
+def object_pool_size(sc: Scenario) -> int:
+    """Part bodies per cell: enough for every part on the belt at once (belt length / speed,
+    divided by the shortest spawn interval), plus the one in the cup and the one settling on the
+    platform."""
+    transit_s = 2 * g.BELT_HALF_LENGTH / sc.cell.belt_speed_m_s
+    shortest_s = sc.cell.object_period_s - 2 * sc.cell.object_jitter_s
+    return math.ceil(transit_s / max(shortest_s, 0.1)) + 2
+
+
+def park_position(slot: int) -> tuple[float, float, float]:
+    """Where pool slot ``slot`` waits, relative to the cell origin."""
+    return (-0.6 + 0.2 * slot, -1.2, PARK_Z)
+
+
+def _cell_xml(i: int, x: float, y: float, sc: Scenario) -> tuple[str, str]:
+    """(worldbody xml, equality xml) of cell ``i`` centred at (x, y), without its arm."""
+    h = sc.cell.object_size_m / 2
     cam_z = g.BELT_TOP_Z + g.CAMERA_HEIGHT_ABOVE_BELT
     px, py = g.PLATFORM_CENTRE
+    bx, by, bz = g.ARM_BASE_POS
     bl, bw = g.BELT_HALF_LENGTH, g.BELT_HALF_WIDTH
     objects = []
-    for k in range(OBJECT_POOL):
-        # Parked objects rest on the floor outside the camera's view until spawned.
+    for k in range(object_pool_size(sc)):
+        ox, oy, oz = park_position(k)
+        # contype/conaffinity 0 and gravcomp 1: parked (the world switches them on at spawn).
         objects.append(f"""
-    <body name="c{i}_obj{k}" pos="{-0.3 + 0.2 * k} -1.6 {h + 0.001}">
+    <body name="c{i}_obj{k}" pos="{x + ox} {y + oy} {oz}" gravcomp="1">
       <freejoint name="c{i}_obj{k}_free"/>
       <geom name="c{i}_obj{k}_geom" type="box" size="{h} {h} {h}" mass="{sc.cell.object_mass_kg}"
-            material="part" friction="0.9 0.01 0.001"/>
+            material="part" friction="0.9 0.01 0.001" contype="0" conaffinity="0"/>
     </body>""")
     body = f"""
   <body name="c{i}" pos="{x} {y} 0">
-    <!-- belt: low friction, the conveyor drive sets object velocity (kinematic belt) -->
+    <!-- belt: the conveyor drive sets the parts' velocity every step (kinematic belt), so its
+         contacts need no friction: condim 1 (normal force only; priority makes the belt's contact
+         parameters win) costs a third of the solver rows of a frictional contact -->
     <geom name="c{i}_belt" type="box" pos="0 0 {g.BELT_TOP_Z - 0.05}" size="{bl} {bw} 0.05"
-          material="belt" friction="0.05 0.005 0.0001"/>
+          material="belt" condim="1" priority="1"/>
+    <geom name="c{i}_belt_frame" type="box" pos="0 0 {(g.BELT_TOP_Z - 0.1) / 2}"
+          size="{bl - 0.05} {bw - 0.03} {(g.BELT_TOP_Z - 0.1) / 2}" material="frame" contype="0" conaffinity="0"/>
     <geom name="c{i}_platform" type="box" pos="{px} {py} {g.PLATFORM_TOP_Z - 0.05}"
           size="{g.PLATFORM_HALF} {g.PLATFORM_HALF} 0.05" material="platform"/>
-    <geom name="c{i}_post_a" type="cylinder" pos="-0.7 -0.45 {g.GANTRY_Z / 2 + 0.05}"
-          size="0.03 {g.GANTRY_Z / 2 + 0.05}" material="frame" contype="0" conaffinity="0"/>
-    <geom name="c{i}_post_b" type="cylinder" pos="0.7 -0.45 {g.GANTRY_Z / 2 + 0.05}"
-          size="0.03 {g.GANTRY_Z / 2 + 0.05}" material="frame" contype="0" conaffinity="0"/>
+    <geom name="c{i}_platform_leg" type="box" pos="{px} {py} {(g.PLATFORM_TOP_Z - 0.1) / 2}"
+          size="0.04 0.04 {(g.PLATFORM_TOP_Z - 0.1) / 2}" material="frame" contype="0" conaffinity="0"/>
+    <geom name="c{i}_pedestal" type="cylinder" pos="{bx} {by} {bz / 2}" size="{g.PEDESTAL_RADIUS} {bz / 2}"
+          material="frame" contype="0" conaffinity="0"/>
     <camera name="c{i}_camera" pos="{g.CAMERA_X} 0 {cam_z}" xyaxes="1 0 0 0 1 0" fovy="{sc.camera.fovy_deg}"/>
-    <camera name="c{i}_top" pos="0 0.1 3.2" xyaxes="1 0 0 0 1 0" fovy="45"/>
-    <body name="c{i}_gantry" pos="0 0 {g.GANTRY_Z}" gravcomp="1">
-      <geom type="box" size="0.75 0.03 0.03" pos="0 -0.45 0.1" material="frame" contype="0" conaffinity="0"/>
-      <body name="c{i}_xcar" gravcomp="1">
-        <joint name="c{i}_x" type="slide" axis="1 0 0" range="{g.JOINT_RANGES['x'][0]} {g.JOINT_RANGES['x'][1]}"
-               damping="{SERVO_DAMPING}" limited="true"/>
-        <geom type="box" size="0.04 0.6 0.03" pos="0 0.25 0.1" mass="4" material="frame" contype="0" conaffinity="0"/>
-        <body name="c{i}_ycar" gravcomp="1">
-          <joint name="c{i}_y" type="slide" axis="0 1 0" range="{g.JOINT_RANGES['y'][0]} {g.JOINT_RANGES['y'][1]}"
-                 damping="{SERVO_DAMPING}" limited="true"/>
-          <geom type="box" size="0.05 0.05 0.04" pos="0 0 0.1" mass="2" material="frame" contype="0" conaffinity="0"/>
-          <body name="c{i}_zcar" gravcomp="1">
-            <joint name="c{i}_z" type="slide" axis="0 0 1" range="{g.JOINT_RANGES['z'][0]} {g.JOINT_RANGES['z'][1]}"
-                   damping="{SERVO_DAMPING}" limited="true"/>
-            <geom type="cylinder" size="0.015 0.25" pos="0 0 0.25" mass="1" material="tool" contype="0" conaffinity="0"/>
-            <body name="c{i}_cup" pos="0 0 {-g.CUP_LENGTH / 2}">
-              <geom name="c{i}_cup_geom" type="cylinder" size="0.02 {g.CUP_LENGTH / 2}" mass="0.1" material="cup"/>
-              <site name="c{i}_tip" pos="0 0 {-g.CUP_LENGTH / 2}" size="0.005"/>
-            </body>
-          </body>
-        </body>
-      </body>
-    </body>
+    <camera name="c{i}_top" pos="0.05 0.15 3.0" xyaxes="1 0 0 0 1 0" fovy="45"/>
   </body>
   {''.join(objects)}"""
-    act = "".join(
-        f'\n    <position name="c{i}_{a}_servo" joint="c{i}_{a}" kp="{SERVO_KP}" '
-        f'ctrlrange="{g.JOINT_RANGES[a][0]} {g.JOINT_RANGES[a][1]}" forcerange="-400 400"/>'
-        for a in "xyz"
-    )
-    # One weld per pool object: the suction grip, switched on when the cup seals on a part.
+    # One weld per pool part: the suction grip, switched on when the cup seals on a part.
     eq = "".join(
         f'\n    <weld name="c{i}_grip{k}" body1="c{i}_cup" body2="c{i}_obj{k}" active="false"/>'
-        for k in range(OBJECT_POOL)
+        for k in range(object_pool_size(sc))
     )
-    return body, act, eq
+    return body, eq
 
 
-def build_mjcf(sc: Scenario) -> str:
-    """The hall with ``sc.loops`` cells, as an MJCF string."""
-    bodies, acts, eqs = [], [], []
+def _hall_xml(sc: Scenario) -> str:
+    bodies, eqs = [], []
     for i, (x, y) in enumerate(sc.hall.cell_origins(sc.loops)):
-        b, a, e = _cell_xml(i, x, y, sc)
+        b, e = _cell_xml(i, x, y, sc)
         bodies.append(b)
-        acts.append(a)
         eqs.append(e)
     ts = sc.physics_timestep_us / 1e6
     return f"""<mujoco model="cosim5g_hall">
@@ -100,16 +94,17 @@ def build_mjcf(sc: Scenario) -> str:
   <visual>
     <global offwidth="{max(sc.camera.width_px, 640)}" offheight="{max(sc.camera.height_px, 480)}"/>
     <quality shadowsize="1024"/>
+    <!-- near clip 5 cm: the arm may pass close under the cell camera -->
+    <map znear="0.05" zfar="100"/>
   </visual>
+  <statistic extent="1" center="0 0 0.8"/>
   <asset>
     <texture name="floor_tex" type="2d" builtin="checker" rgb1=".55 .55 .52" rgb2=".48 .48 .45" width="256" height="256"/>
     <material name="floor" texture="floor_tex" texrepeat="60 30"/>
     <texture name="belt_tex" type="2d" builtin="flat" rgb1=".12 .12 .13" rgb2=".18 .18 .19" mark="random" random="0.3" width="128" height="128"/>
     <material name="belt" texture="belt_tex" texrepeat="6 2"/>
     <material name="platform" rgba=".2 .35 .7 1"/>
-    <material name="frame" rgba=".75 .75 .78 1"/>
-    <material name="tool" rgba=".3 .3 .3 1"/>
-    <material name="cup" rgba=".1 .1 .1 1"/>
+    <material name="frame" rgba=".55 .57 .6 1"/>
     <material name="part" rgba=".95 .45 .05 1"/>
   </asset>
   <worldbody>
@@ -118,9 +113,30 @@ def build_mjcf(sc: Scenario) -> str:
           size="{sc.hall.length_m / 2} {sc.hall.width_m / 2} 0.1" material="floor"/>
     {''.join(bodies)}
   </worldbody>
-  <actuator>{''.join(acts)}
-  </actuator>
   <equality>{''.join(eqs)}
   </equality>
 </mujoco>
 """
+
+
+def build_spec(sc: Scenario) -> mujoco.MjSpec:
+    """The hall with ``sc.loops`` cells, each with its own copy of the arm, as an mjSpec."""
+    spec = mujoco.MjSpec.from_string(_hall_xml(sc))
+    spec.copy_during_attach = True  # one spec of the arm, attached (copied) into every cell
+    arm = arm_spec()
+    yaw = g.ARM_BASE_YAW
+    quat = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+    for i in range(sc.loops):
+        frame = spec.body(f"c{i}").add_frame(pos=list(g.ARM_BASE_POS), quat=quat)
+        spec.attach(arm, prefix=f"c{i}_", frame=frame)
+    return spec
+
+
+def build_model(sc: Scenario) -> mujoco.MjModel:
+    """The compiled hall."""
+    return build_spec(sc).compile()
+
+
+def build_mjcf(sc: Scenario) -> str:
+    """The hall as one self-contained MJCF string (for inspection and the model tests)."""
+    return build_spec(sc).to_xml()

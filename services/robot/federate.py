@@ -11,7 +11,7 @@ from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
 from services.common.tables import write_table
-from services.physics.scene import SERVO_LAG_S
+from services.physics.arm import SERVO_LAG_S
 from services.robot.controller import PickController
 
 

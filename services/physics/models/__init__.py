@@ -1,0 +1,1 @@
+"""Model files: the arm (arm6.xml)."""
