@@ -19,7 +19,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help install run smoke test test-unit test-integration lint bench bench-docker images up down \
-	calibrate measure-frames clean
+	calibrate measure-frames train-perception install-train clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
@@ -41,8 +41,9 @@ smoke: $(BIN)/cosim5g ## run the 2-loop smoke scenario in the process runtime
 lint: $(BIN)/cosim5g ## ruff over the code
 	$(BIN)/ruff check coordinator services netsim benchmarks tests
 
-test: $(BIN)/cosim5g ## lint, then every test (docker tests run when a Docker daemon answers)
+test: $(BIN)/cosim5g ## ruff, mypy, then every test (docker tests run when a Docker daemon answers)
 	$(BIN)/ruff check coordinator services netsim benchmarks tests
+	$(BIN)/mypy coordinator services netsim benchmarks
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 test-unit: $(BIN)/cosim5g ## fast unit tests only (in-memory bus)
@@ -73,6 +74,15 @@ calibrate: images ## real workloads under cpus 1.0/0.5/0.25: wall and cpu-mode v
 
 bench-docker: images ## make bench plus the smoke run in containers: docker/process real-time factor
 	$(BIN)/python -m benchmarks.platform_bench --docker
+
+install-train: $(BIN)/cosim5g ## add torch + onnx to .venv (several GB: PyPI's torch brings CUDA libraries)
+	$(BIN)/pip install --quiet -e '.[api,plots,dev,train]'
+
+train-perception: install-train ## render the pose data set, train the Edge pose network (CPU), export pose.onnx, re-measure
+	$(BIN)/python -m services.edge.train.train --regenerate
+	$(BIN)/python -m services.edge.train.dataset --split test --episodes 10
+	$(BIN)/python -m benchmarks.perception_accuracy --record
+	$(BIN)/python -m services.camera.measure
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
 	$(BIN)/python -m services.camera.measure

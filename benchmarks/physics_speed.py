@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         halls.append(hall_speed(n, args.seconds, args.seed))
         h = halls[-1]
         print(f"  {n:>3} cells: physics RTF {h['rtf_physics']:.2f}, {h['us_per_step']:.0f} us/step", flush=True)
-    renders = []
+    renders: list[dict[str, Any]] = []
     for label, cam in (("default 640x360", {}), ("smoke 424x240", {"width_px": 424, "height_px": 240})):
         sc = parse_scenario({"loops": 1, "detailed_loops": 1, "camera": cam})
         renders.append({"camera": label, "ms_per_frame": render_cost(sc, args.frames), "fps": sc.camera.fps})

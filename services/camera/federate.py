@@ -1,4 +1,5 @@
-"""The camera node: receives rendered RGB-D frames, keeps each with probability PDP_r (the Edge's
+"""The camera node: receives rendered RGB-D frames, applies the D435-class sensor model
+(services/camera/sensor.py), keeps each with probability PDP_r (the Edge's
 co-design signal), compresses kept frames on its throttled CPU and hands them to the modem as
 IP packets of an uplink flow to the Edge.
 """
@@ -11,6 +12,7 @@ import cv2
 import numpy as np
 
 from services.camera.codec import encode_frame, slot_after, split_packets
+from services.camera.sensor import sense, sensor_for
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
@@ -28,6 +30,8 @@ class CameraFederate(Federate):
         self.pdb_us: int | None = None
         self.frames: list[dict[str, Any]] = []
         self.frame_id = 0
+        self.sensor = sensor_for(self.scenario.camera)
+        self.sensor_rng = self.rng("sensor")
         cv2.setNumThreads(1)  # one emulated core: keep OpenCV from spreading a job over threads
 
     def on_message(self, msg: Message) -> None:
@@ -53,7 +57,11 @@ class CameraFederate(Federate):
         blob = msg.blob or b""
         rgb = np.frombuffer(blob, np.uint8, w * h * 3).reshape(h, w, 3)
         depth = np.frombuffer(blob, np.uint16, w * h, w * h * 3).reshape(h, w)
-        data, ready = self.cpu.run("compress", self.now, encode_frame, rgb, depth, sc.camera.jpeg_quality)
+        # The sensor's noise and invalid pixels happen in the camera hardware, not on the node's CPU.
+        rgb, depth = sense(self.sensor, rgb, depth, self.sensor_rng)
+        cam = sc.camera
+        data, ready = self.cpu.run("compress", self.now, encode_frame, rgb, depth, cam.jpeg_quality,
+                                   cam.depth_codec, cam.depth_decimation)
         row["bytes"], row["ready_us"] = len(data), ready
         self.schedule(ready, self._transmit, fid, msg.body["capture_us"], data)
 

@@ -49,10 +49,11 @@ def read_throttled_ns() -> int | None:
 
 
 # Emulated durations of the platform's jobs when a profile gives none: cpu-mode medians of the
-# smoke scenario (424x240 frames; camera 0.25, Edge 1.0, robot 0.25 cpus), rounded up.
+# smoke scenario (424x240 frames; camera 0.25, Edge 1.0, robot 0.25 cpus), rounded up. compress:
+# JPEG + decimated delta-zlib depth; pose: decode + the learned estimator (docs/perception.md).
 DEFAULT_JOB_MODELS = {
-    "compress": JobModel(mean_us=12_000, sd_us=1_500),
-    "pose": JobModel(mean_us=3_000, sd_us=400),
+    "compress": JobModel(mean_us=5_000, sd_us=800),
+    "pose": JobModel(mean_us=4_000, sd_us=500),
     "policy": JobModel(mean_us=50, sd_us=10),
     "control": JobModel(mean_us=1_600, sd_us=300),
 }

@@ -127,12 +127,32 @@ class CellConfig(Strict):
 
 
 class CameraConfig(Strict):
+    """The cell cameras: a D435-class RGB-D sensor and the camera node's compression.
+
+    The defaults give about 35 kB per frame, 8.5 Mbit/s per loop at 30 frame/s, with the sensor
+    model on (measured by ``python -m services.camera.measure``, docs in services/camera/)."""
+
     fps: int = Field(default=30, ge=1, le=90, description="frames per second")
     width_px: int = Field(default=640, ge=64, le=1920, description="image width, pixels")
     height_px: int = Field(default=360, ge=48, le=1080, description="image height, pixels")
     fovy_deg: float = Field(default=58.0, gt=10, lt=120, description="vertical field of view, deg")
-    jpeg_quality: int = Field(default=85, ge=10, le=100, description="JPEG quality of the RGB image")
-    depth_noise_mm: float = Field(default=0.0, ge=0, description="sensor depth noise sd at 1 m, mm (noise makes 16-bit depth nearly incompressible)")
+    jpeg_quality: int = Field(default=84, ge=10, le=100, description="JPEG quality of the RGB image")
+    depth_codec: Literal["delta-zlib", "png"] = Field(
+        default="delta-zlib", description="lossless depth codec: `delta-zlib` (2-D difference + zlib, "
+        "smallest at PNG's CPU cost) or `png` (16-bit PNG, level 1)")
+    depth_decimation: Literal[1, 2, 4] = Field(
+        default=4, description="depth decimation filter on the camera node (RealSense SDK semantics): "
+        "depth is sent at 1/this of the colour resolution per axis")
+    sensor_model: Literal["d435", "ideal"] = Field(
+        default="d435", description="`d435`: stereo depth noise growing with distance squared, invalid "
+        "pixels (left band, occlusion shadows, depth edges), colour shot and read noise "
+        "(services/camera/sensor.py); `ideal`: the rendered images as they are")
+    depth_subpixel_px: float = Field(
+        default=0.08, ge=0, le=1.0, description="`d435`: stereo disparity error sd, px (RMS depth error "
+        "= z^2 * this / (focal px * 50 mm baseline))")
+    depth_noise_mm: float = Field(
+        default=0.0, ge=0, description="extra white depth noise sd at 1 m added by the physics renderer, "
+        "mm, on top of `sensor_model` (noise makes 16-bit depth nearly incompressible)")
     readout_latency_us: int = Field(default=2000, ge=1, description="capture to camera node, us")
     mtu_bytes: int = Field(default=1500, ge=576, le=9000, description="IP packet size limit, bytes")
 
@@ -150,7 +170,10 @@ class RobotConfig(Strict):
 
 
 class EdgeConfig(Strict):
-    estimator: Literal["classical"] = Field(default="classical", description="pose estimator")
+    estimator: Literal["learned", "classical"] = Field(
+        default="learned", description="pose estimator: `learned` (a small CNN trained on rendered "
+        "frames, services/edge/models/pose.onnx, run with ONNX Runtime; falls back to `classical` "
+        "with a logged reason when the model is missing) or `classical` (colour segmentation)")
     policy_period_ms: int = Field(default=50, ge=1, description="co-design policy period, ms")
     pose_packet_bytes: int = Field(default=120, ge=40, description="IP size of a pose packet")
     qos_packet_bytes: int = Field(default=60, ge=40, description="IP size of a QoS packet")

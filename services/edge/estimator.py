@@ -7,12 +7,17 @@ the median depth inside the blob gives the distance to the part's top face.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
 
 from services.physics.cell_geometry import CameraIntrinsics
+
+log = logging.getLogger(__name__)
 
 MIN_BLOB_PX = 30  # smaller blobs are noise (a 6 cm part at 1 m covers ~400 px at 640x360)
 
@@ -23,6 +28,16 @@ class Detection:
 
     p: np.ndarray
     area_px: int
+
+
+class Estimator(Protocol):
+    """What the Edge needs of a pose estimator."""
+
+    name: str
+
+    def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
+        """Parts in one decoded frame (rgb uint8 HxWx3, depth uint16 mm HxW, 0 = invalid)."""
+        ...
 
 
 class ClassicalEstimator:
@@ -53,3 +68,24 @@ class ClassicalEstimator:
             top = self.k.back_project(float(u), float(v), z)
             out.append(Detection(p=top - np.array([0.0, 0.0, self.half]), area_px=area))
         return out
+
+
+def make_estimator(name: str, intrinsics: CameraIntrinsics, object_size_m: float,
+                   model_path: str | Path | None = None) -> tuple[Estimator, str | None]:
+    """The estimator called ``name`` (``learned`` or ``classical``) and, when another one had to
+    stand in, why: ``learned`` falls back to ``classical`` when its model cannot be loaded."""
+    if name == "classical":
+        return ClassicalEstimator(intrinsics, object_size_m), None
+    if name == "learned":
+        from services.edge import learned
+
+        path = Path(model_path) if model_path is not None else learned.DEFAULT_MODEL
+        reason = learned.model_available(path)
+        if reason is None:
+            try:
+                return learned.LearnedEstimator(intrinsics, object_size_m, path), None
+            except Exception as exc:  # a corrupt or incompatible model file
+                reason = f"cannot load {path}: {exc}"
+        log.warning("learned estimator unavailable (%s); using the classical estimator", reason)
+        return ClassicalEstimator(intrinsics, object_size_m), reason
+    raise ValueError(f"unknown estimator {name!r}; valid: learned, classical")

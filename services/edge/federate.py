@@ -15,7 +15,7 @@ from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
 from services.common.tables import write_table
-from services.edge.estimator import ClassicalEstimator, Detection
+from services.edge.estimator import Detection, make_estimator
 from services.edge.policy import LoopState, Qos, make_policy
 from services.edge.tracker import Tracker
 from services.physics import cell_geometry as g
@@ -32,7 +32,9 @@ class EdgeFederate(Federate):
         sc = self.scenario
         self.cpu = ComputeNode(self.name, sc.nodes.edge, self.rng("compute"))
         k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
-        self.estimator = ClassicalEstimator(k, sc.cell.object_size_m)
+        # A learned estimator whose model cannot be loaded falls back to the classical one; the
+        # warning is logged and the summary names the estimator that ran and why.
+        self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.cell.object_size_m)
         self.loops = list(range(sc.detailed_loops))
         self.trackers = {i: Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
         self.policy = make_policy(sc.policy)
@@ -109,5 +111,6 @@ class EdgeFederate(Federate):
         write_table(self.results_dir / "tables" / "jobs-edge.parquet", self.cpu.record_dicts())
         done = [f for f in self.frames if not f["lost"]]
         return {"frames_estimated": len(done), "frames_incomplete": len(self.frames) - len(done),
-                "estimator": self.estimator.name,
+                "estimator": self.estimator.name, "estimator_requested": self.scenario.edge.estimator,
+                "estimator_fallback_reason": self.estimator_fallback or "",
                 "mean_detections": float(np.mean([f["detections"] for f in done])) if done else 0.0}

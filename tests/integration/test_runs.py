@@ -51,7 +51,8 @@ def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
     assert kpis["loops_with_tasks"] == 2 and kpis["tasks"] >= 4
     assert kpis["ul_packets"] > 0 and kpis["dl_packets"] > 0
     assert kpis["ul_throughput_mbps"] > 0 and kpis["ip_latency_ms"]["p99"] is not None
-    assert kpis["estimator"] == "classical" and kpis["camera_bitrate_mbps_mean"] > 0
+    assert kpis["estimator"] == "learned" and kpis["camera_bitrate_mbps_mean"] > 0
+    assert kpis["federates"]["edge"]["estimator_fallback_reason"] == ""
     run_dir = Path(kpis["results_dir"])
     for name in ("config.yaml", "versions.json", "kpis.json", "tasks.parquet", "packets.parquet",
                  "jobs.parquet", "frames.parquet", "frames/camera-0.png"):

@@ -1,18 +1,28 @@
-"""Camera compression and the Edge estimator/tracker on frames rendered by our scene."""
+"""Camera sensor model and compression, the Edge estimators (learned and classical) and the
+tracker, on frames rendered by our scene."""
 
 from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from services.camera.codec import decode_frame, encode_frame, slot_after, split_packets
+from services.camera.sensor import SensorModel, decimate_depth, sense, sensor_for
 from services.common.scenario import parse_scenario
 from services.common.seeding import rng
-from services.edge.estimator import ClassicalEstimator
+from services.edge.estimator import ClassicalEstimator, make_estimator
+from services.edge.learned import DEFAULT_MODEL, LearnedEstimator
 from services.edge.tracker import Tracker
 from services.physics.cell_geometry import CameraIntrinsics
 from services.physics.federate import sensor_depth_mm
 from services.physics.world import World
+
+ROOT = Path(__file__).parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -26,15 +36,64 @@ def rendered() -> tuple[np.ndarray, np.ndarray, list[dict]]:
     return rgb, sensor_depth_mm(depth, 0.0, rng(0, "t")), world.objects(0)
 
 
-def test_codec_round_trip_keeps_depth_exact(rendered: tuple) -> None:
+@pytest.fixture(scope="module")
+def sensed(rendered: tuple) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """The rendered frame as the default camera delivers it to the Edge (sensor + codec)."""
+    rgb, depth, truth = rendered
+    cam = parse_scenario({}).camera
+    rgb_s, depth_s = sense(sensor_for(cam), rgb, depth, rng(0, "sensor"))
+    data = encode_frame(rgb_s, depth_s, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation)
+    rgb2, depth2 = decode_frame(data)
+    return rgb2, depth2, truth
+
+
+def intrinsics() -> CameraIntrinsics:
+    cam = parse_scenario({}).camera
+    return CameraIntrinsics(cam.width_px, cam.height_px, cam.fovy_deg)
+
+
+@pytest.mark.parametrize("codec", ["delta-zlib", "png"])
+def test_codec_round_trip_keeps_depth_exact(rendered: tuple, codec: str) -> None:
     rgb, depth, _ = rendered
-    data = encode_frame(rgb, depth, 85)
+    depth = SensorModel(intrinsics().f_px).depth(depth, rng(0, "codec"))  # noisy, with invalid pixels
+    data = encode_frame(rgb, depth, 85, codec, 1)
     rgb2, depth2 = decode_frame(data)
     assert np.array_equal(depth2, depth)
     assert np.abs(rgb2.astype(int) - rgb.astype(int)).mean() < 3
-    assert len(data) < rgb.nbytes // 5
     with pytest.raises(ValueError, match="not a compressed"):
         decode_frame(data[:-10])
+    # Decimated depth comes back at the colour resolution, each block's value repeated.
+    small = decimate_depth(depth, 4)
+    _, depth4 = decode_frame(encode_frame(rgb, depth, 85, codec, 4))
+    assert depth4.shape == depth.shape and np.array_equal(depth4[::4, ::4], small)
+
+
+def test_decimation_is_the_median_or_mean_of_valid_pixels() -> None:
+    d = np.array([[0, 0, 5, 7], [0, 0, 9, 0], [1, 2, 3, 4], [5, 6, 7, 8]], np.uint16)
+    assert decimate_depth(d, 2).tolist() == [[0, 7], [2, 4]]
+    assert decimate_depth(d, 4).tolist() == [[5]]  # mean of the 11 valid pixels, 5.18
+
+
+def test_sensor_noise_grows_with_distance_squared_and_invalidates_the_left_band() -> None:
+    sm = SensorModel(f_px=324.7, white_fraction=1.0)  # per-pixel noise only: easy to measure
+    r = rng(0, "sensor-test")
+    sds = []
+    for z_mm in (800, 1600):
+        flat = np.full((90, 160), z_mm, np.uint16)
+        out = sm.depth(flat, r).astype(float)
+        band = int(np.ceil(324.7 * 0.05 / (z_mm / 1000)))
+        assert (out[:, :band - 1] == 0).all() and (out[:, band + 1:] > 0).all()
+        sds.append(out[:, band + 1:].std())
+    assert 3.0 < sds[1] / sds[0] < 5.0  # twice the distance, four times the noise
+    assert abs(sds[0] - 0.8**2 * 0.08 / (324.7 * 0.05) * 1000) < 0.5
+
+
+def test_default_camera_frame_is_about_35_kilobytes(rendered: tuple) -> None:
+    rgb, depth, _ = rendered
+    cam = parse_scenario({}).camera
+    rgb_s, depth_s = sense(sensor_for(cam), rgb, depth, rng(0, "size"))
+    size = len(encode_frame(rgb_s, depth_s, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation))
+    assert 25_000 < size < 45_000
 
 
 def test_packetisation_respects_mtu_and_slots() -> None:
@@ -43,15 +102,35 @@ def test_packetisation_respects_mtu_and_slots() -> None:
     assert slot_after(0, 1000) == 1000 and slot_after(999, 1000) == 1000 and slot_after(1000, 1000) == 2000
 
 
-def test_classical_estimator_finds_the_part_within_millimetres(rendered: tuple) -> None:
-    rgb, depth, truth = rendered
-    sc = parse_scenario({})
-    est = ClassicalEstimator(CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg),
-                             sc.cell.object_size_m)
-    rgb2, depth2 = decode_frame(encode_frame(rgb, depth, 85))
-    dets = est.detect(rgb2, depth2)
+def test_classical_estimator_finds_the_part_within_millimetres(sensed: tuple) -> None:
+    rgb, depth, truth = sensed
+    dets = ClassicalEstimator(intrinsics(), 0.06).detect(rgb, depth)
     assert len(dets) == 1
     assert np.linalg.norm(dets[0].p - np.asarray(truth[0]["p"])) < 0.01
+
+
+def test_learned_estimator_finds_the_part_within_millimetres(sensed: tuple) -> None:
+    rgb, depth, truth = sensed
+    dets = LearnedEstimator(intrinsics(), 0.06).detect(rgb, depth)
+    assert len(dets) == 1
+    assert np.linalg.norm(dets[0].p - np.asarray(truth[0]["p"])) < 0.01
+
+
+def test_learned_model_is_small_and_recorded() -> None:
+    assert DEFAULT_MODEL.stat().st_size < 1_000_000
+    assert DEFAULT_MODEL.with_suffix(".json").is_file()
+
+
+def test_factory_picks_the_estimator_by_name_and_falls_back_without_a_model(tmp_path: Path) -> None:
+    k = intrinsics()
+    est, why = make_estimator("learned", k, 0.06)
+    assert est.name == "learned" and why is None
+    est, why = make_estimator("classical", k, 0.06)
+    assert est.name == "classical" and why is None
+    est, why = make_estimator("learned", k, 0.06, tmp_path / "missing.onnx")
+    assert est.name == "classical" and why is not None and "not found" in why
+    with pytest.raises(ValueError, match="unknown estimator"):
+        make_estimator("magic", k, 0.06)
 
 
 def test_tracker_estimates_belt_velocity() -> None:
@@ -64,3 +143,14 @@ def test_tracker_estimates_belt_velocity() -> None:
     (track,) = tr.tracks.values()
     assert abs(track.x[3] - 0.2) < 0.03 and abs(track.x[4]) < 0.03
     assert track.t_us == 29 * 33_333
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("torch") is None or importlib.util.find_spec("onnx") is None,
+                    reason="training needs torch and onnx (pip install torch onnx)")
+def test_quick_training_renders_trains_and_exports() -> None:
+    """The training path end to end on a tiny budget (about a minute); needs torch + onnx."""
+    proc = subprocess.run([sys.executable, "-m", "services.edge.train.train", "--quick", "--threads", "1"],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "epoch 2/2" in proc.stdout and "wrote " in proc.stdout

@@ -3,8 +3,6 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 
 from __future__ import annotations
 
-import os
-
 import mujoco
 import numpy as np
 import pytest
@@ -162,16 +160,10 @@ def test_stale_estimates_make_the_arm_hold_instead_of_descending() -> None:
     assert ctl.phase == "approach" and not ctl.suction and ctl.holds > 50
 
 
-def _slow_selected(request: pytest.FixtureRequest) -> bool:
-    return "slow" in (request.config.getoption("markexpr") or "") or bool(os.environ.get("COSIM5G_SLOW_TESTS"))
-
-
 @pytest.mark.slow
-def test_ideal_network_success_over_200_tasks(request: pytest.FixtureRequest) -> None:
-    """The benchmark-style version: >= 200 tasks with varied parts, >= 99% placed. Runs with
-    ``pytest -m slow`` (or COSIM5G_SLOW_TESTS=1); about a minute on two shared cores."""
-    if not _slow_selected(request):
-        pytest.skip("200-task benchmark: run with -m slow or COSIM5G_SLOW_TESTS=1")
+def test_ideal_network_success_over_200_tasks() -> None:
+    """The benchmark-style version: >= 200 tasks with varied parts, >= 99% placed (about a
+    minute on two shared cores)."""
     sc = parse_scenario({"loops": 8, "duration_s": 106, "seed": 7, "cell": VARIED})
     res = run_ideal(sc)
     assert len(res.tasks) >= 200
