@@ -1,9 +1,11 @@
 """``make calibrate``: the real workloads under node profiles of 1.0, 0.5 and 0.25 cpus.
 
-For each workload and profile it reports the host CPU time of a job (unlimited, on the host), the
-wall time of the job inside a container with that CFS quota (what ``wall`` timing measures), the
-``cpu``-mode estimate (CPU time in the container / cpus), the ideal (host CPU time / cpus) and the
-ratios of both to the ideal. Medians over repetitions. Written to results/bench/calibrate.md.
+For each workload and profile it reports the CPU time of a job without any limit (same image,
+same interpreter, no CPU quota), the wall time of the job inside a container with that CFS quota
+(what ``wall`` timing measures), the ``cpu``-mode estimate (CPU time in the container / cpus),
+the ideal (unlimited CPU time / cpus) and the ratios of both to the ideal. Medians over
+repetitions. The profiles are measured in interleaved rounds, because a shared virtual machine's
+speed drifts over minutes. Written to results/bench/calibrate.md.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,13 +25,9 @@ PROFILES = (1.0, 0.5, 0.25)
 ROOT = Path(__file__).parents[1]
 
 
-def on_host(reps: int) -> dict[str, Any]:
-    out = subprocess.run([sys.executable, "-m", "services.workloads", "--reps", str(reps)],
-                         capture_output=True, text=True, check=True, cwd=ROOT)
-    return dict(json.loads(out.stdout.strip().splitlines()[-1]))
-
-
-def in_container(client: Any, cpus: float, reps: int) -> dict[str, Any]:
+def in_container(client: Any, cpus: float | None, reps: int) -> dict[str, Any]:
+    """Run the workloads in the runtime image; ``cpus`` None: no CPU quota (the baseline, with the
+    image's own interpreter -- the host's may be a different build and speed)."""
     raw = client.containers.run(
         RUNTIME_IMAGE, ["python", "-m", "services.workloads", "--reps", str(reps)],
         environment={"MUJOCO_GL": "egl", "HOME": "/tmp"}, remove=True, read_only=True,
@@ -56,7 +53,7 @@ def table(host: dict[str, Any], limited: dict[float, dict[str, Any]]) -> list[di
 
 
 def render(rows: list[dict[str, Any]]) -> str:
-    head = ("| workload | cpus | host CPU ms | wall ms (limited) | cpu-mode ms | ideal ms | "
+    head = ("| workload | cpus | unlimited CPU ms | wall ms (limited) | cpu-mode ms | ideal ms | "
             "wall / ideal | cpu-mode / ideal |")
     lines = [head, "|" + "---|" * 8]
     for r in rows:
@@ -68,13 +65,21 @@ def render(rows: list[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--reps", type=int, default=5, help="repetitions per container")
+    ap.add_argument("--rounds", type=int, default=4, help="interleaved rounds over the profiles")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
     args = ap.parse_args(argv)
     client = docker_client()
     load = os.getloadavg()[0]
-    host = on_host(args.reps)
-    limited = {cpus: in_container(client, cpus, args.reps) for cpus in PROFILES}
+    samples: dict[float | None, dict[str, Any]] = {}
+    for _ in range(args.rounds):
+        for cpus in (None, *PROFILES):
+            for name, m in in_container(client, cpus, args.reps).items():
+                acc = samples.setdefault(cpus, {}).setdefault(name, {"cpu_ms": [], "wall_ms": []})
+                acc["cpu_ms"] += m["cpu_ms"]
+                acc["wall_ms"] += m["wall_ms"]
+    host = samples.pop(None)
+    limited = {cpus: samples[cpus] for cpus in PROFILES}
     rows = table(host, limited)
     text = render(rows) + (f"\n\nHost load average (1 min) at the start: {load:.2f} on {os.cpu_count()} cores; "
                            "ratios are meaningful on an otherwise idle host only.")
