@@ -680,19 +680,26 @@ class NrCell(Cell):
             eff = harq.combine(tb, sinr)
             ok = self._rand_ul() >= self.phy.bler.tb_bler(
                 tb.mcs, tb.cbs_bits, tb.n_cb, 10.0 * math.log10(eff))
-            if tb.tx_count == 1:
-                self._first_tx["ul"] += 1
-                self._mcs_hist["ul"][tb.mcs] += 1
-                if not ok:
-                    self._first_fail["ul"] += 1
-                self._la_ul.feedback(u, ok)
-            else:
-                self._retx["ul"] += 1
+            self._account("ul", u, tb, ok, self._la_ul, ok)
             if ok:
                 self._deliver(tb, True)
                 harq.busy[u] -= 1
             else:
                 self._after_failure(tb, s + 1, harq, True)
+
+    def _account(self, link: str, u: int, tb: TransportBlock, ok: bool, la: LinkAdaptation,
+                 ack: bool) -> None:
+        """A transmission's statistics: first transmissions feed the MCS histogram, the
+        first-transmission BLER and link adaptation (with the ACK as the gNB read it); later ones
+        count as retransmissions."""
+        if tb.tx_count == 1:
+            self._first_tx[link] += 1
+            self._mcs_hist[link][tb.mcs] += 1
+            if not ok:
+                self._first_fail[link] += 1
+            la.feedback(u, ack)
+        else:
+            self._retx[link] += 1
 
     def _after_failure(self, tb: TransportBlock, ready_slot: int, harq: HarqEntity,
                        ul: bool) -> None:
@@ -834,14 +841,7 @@ class NrCell(Cell):
                 self._deliver(tb, False)
         r = self._rand_ctrl()
         gnb_ack = r >= cfg.ack_miss_prob if ok else r < cfg.nack_to_ack_prob
-        if tb.tx_count == 1:
-            self._first_tx["dl"] += 1
-            self._mcs_hist["dl"][tb.mcs] += 1
-            if not ok:
-                self._first_fail["dl"] += 1
-            self._la_dl.feedback(u, gnb_ack)
-        else:
-            self._retx["dl"] += 1
+        self._account("dl", u, tb, ok, self._la_dl, gnb_ack)
         if gnb_ack:
             if not tb.decoded:
                 self._residual["dl"] += 1
