@@ -69,7 +69,7 @@ def hall_speed(n: int, seconds: float, seed: int) -> dict[str, Any]:
 def render_cost(sc: Scenario, frames: int) -> float:
     """Wall ms per RGB + depth frame of one cell camera, over ``frames`` frames of a moving scene
     (the renderer's one-off set-up excluded)."""
-    world = World(sc, render_cells=[0])
+    world = World(sc)
     world.spawn(0)
     world.advance_to(1_000_000)
     world.render(0, sc.camera.width_px, sc.camera.height_px)  # GL context and buffers

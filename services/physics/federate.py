@@ -40,7 +40,7 @@ class PhysicsFederate(Federate):
         sc = self.scenario
         self.detailed = list(range(sc.detailed_loops))
         self.abstract = list(range(sc.detailed_loops, sc.loops))
-        self.world = World(sc, render_cells=self.detailed)
+        self.world = World(sc)
         self.step_us = sc.physics_timestep_us
         self.frame_period = sc.frame_period_us
         self.noise_rng = self.rng("depth-noise")

@@ -120,7 +120,7 @@ class CellState:
 class World:
     """All N cells of the hall in one MuJoCo model."""
 
-    def __init__(self, scenario: Scenario, render_cells: list[int] | None = None) -> None:
+    def __init__(self, scenario: Scenario) -> None:
         self.sc = scenario
         self.model = build_model(scenario)
         self.data = mujoco.MjData(self.model)
@@ -163,7 +163,6 @@ class World:
             self.data.ctrl[c.act] = HOME_Q
         mujoco.mj_forward(m, self.data)
         self._renderer: Any = None
-        self._render_cells = render_cells or []
         self._loose: tuple[list[tuple[CellState, int]], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._on_belt: np.ndarray | None = None  # dof addresses of the parts the belt carries
         self._check_steps = max(1, CHECK_PERIOD_US // self.dt_us)
