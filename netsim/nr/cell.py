@@ -543,20 +543,12 @@ class NrCell(Cell):
             pos = len(self._cg_occasions(target)) * cfg.cg_prb
         max_ues = cfg.max_ul_ues_per_slot
         count = 0
-        if harq.retx:
-            waiting = []
-            for tb in harq.retx:
-                if (tb.ready_slot > s or count >= max_ues or tb.ue in taken
-                        or pos + tb.n_prb > n_prb):
-                    waiting.append(tb)
-                    continue
-                grants.append(_Grant(tb.ue, pos, tb.n_prb, tb.mcs, tb.tbs_bits, tb.cbs_bits,
-                                     tb.n_cb, 0, tb, self._rand_ctrl() < cfg.pdcch_miss_prob,
-                                     False, False))
-                taken.add(tb.ue)
-                pos += tb.n_prb
-                count += 1
-            harq.retx = waiting
+        for tb, start in self._due_retransmissions(harq, s, max_ues, pos, n_prb, taken):
+            grants.append(_Grant(tb.ue, start, tb.n_prb, tb.mcs, tb.tbs_bits, tb.cbs_bits,
+                                 tb.n_cb, 0, tb, self._rand_ctrl() < cfg.pdcch_miss_prob,
+                                 False, False))
+            pos = start + tb.n_prb
+            count += 1
         if self._ul_known and count < max_ues and pos < n_prb:
             if self._wb_stale_ul:
                 self._update_wideband(True)
@@ -687,6 +679,24 @@ class NrCell(Cell):
             else:
                 self._after_failure(tb, s + 1, harq, True)
 
+    @staticmethod
+    def _due_retransmissions(harq: HarqEntity, s: int, max_ues: int, pos: int, n_prb: int,
+                             taken: set[int]) -> list[tuple[TransportBlock, int]]:
+        """HARQ retransmissions to send in slot ``s``, each with its first PRB: due by now, one
+        per UE (marked in ``taken``), at most ``max_ues``, fitting from PRB ``pos`` on; the
+        others stay queued in their order."""
+        out: list[tuple[TransportBlock, int]] = []
+        waiting = []
+        for tb in harq.retx:
+            if tb.ready_slot > s or len(out) >= max_ues or tb.ue in taken or pos + tb.n_prb > n_prb:
+                waiting.append(tb)
+                continue
+            out.append((tb, pos))
+            taken.add(tb.ue)
+            pos += tb.n_prb
+        harq.retx = waiting
+        return out
+
     def _account(self, link: str, u: int, tb: TransportBlock, ok: bool, la: LinkAdaptation,
                  ack: bool) -> None:
         """A transmission's statistics: first transmissions feed the MCS histogram, the
@@ -762,18 +772,10 @@ class NrCell(Cell):
         pos = 0
         count = 0
         taken: set[int] = set()
-        if harq.retx:
-            waiting = []
-            for tb in harq.retx:
-                if (tb.ready_slot > s or count >= max_ues or tb.ue in taken
-                        or pos + tb.n_prb > n_prb):
-                    waiting.append(tb)
-                    continue
-                taken.add(tb.ue)
-                self._dl_transmit(s, tb, pos)
-                pos += tb.n_prb
-                count += 1
-            harq.retx = waiting
+        for tb, start in self._due_retransmissions(harq, s, max_ues, pos, n_prb, taken):
+            self._dl_transmit(s, tb, start)
+            pos = start + tb.n_prb
+            count += 1
         if not self._dl_active or count >= max_ues or pos >= n_prb:
             return
         if self._wb_stale_dl:
