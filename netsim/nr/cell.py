@@ -634,12 +634,7 @@ class NrCell(Cell):
                 if g.missed:
                     # DTX seen by the gNB: it knows nothing came and restores its view.
                     self._pdcch_missed += 1
-                    harq.busy[u] -= 1
-                    if g.from_sr:
-                        self._gnb_sr[u] = True
-                    else:
-                        self._gnb_ul_bytes[u] += g.payload_bytes
-                    self._ul_known.add(u)
+                    self._restore_ul_request(u, g)
                     continue
                 buf = self._ul_buf[u]
                 if g.configured and not (buf.bytes and harq.busy[u] < harq.n_processes):
@@ -678,6 +673,16 @@ class NrCell(Cell):
                 harq.busy[u] -= 1
             else:
                 self._after_failure(tb, s + 1, harq, True)
+
+    def _restore_ul_request(self, u: int, g: _Grant) -> None:
+        """A grant that carried nothing: free its HARQ process and give the gNB back what it
+        knew of the UE's request (a pending SR, or the bytes the grant was sized for)."""
+        self._harq_ul.busy[u] -= 1
+        if g.from_sr:
+            self._gnb_sr[u] = True
+        else:
+            self._gnb_ul_bytes[u] += g.payload_bytes
+        self._ul_known.add(u)
 
     @staticmethod
     def _due_retransmissions(harq: HarqEntity, s: int, max_ues: int, pos: int, n_prb: int,
@@ -755,12 +760,7 @@ class NrCell(Cell):
                     continue
                 self._ue_grants[u] -= 1
                 self._ue_grant_bytes[u] -= g.payload_bytes
-                harq.busy[u] -= 1
-                if g.from_sr:
-                    self._gnb_sr[u] = True
-                else:
-                    self._gnb_ul_bytes[u] += g.payload_bytes
-                self._ul_known.add(u)
+                self._restore_ul_request(u, g)
 
     # ------------------------------------------------------------------ downlink
     def _run_dl(self, s: int) -> None:
