@@ -19,6 +19,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help install run smoke test test-unit test-integration lint bench bench-docker images up down \
+	reproduce reproduce-quick \
 	calibrate measure-frames train-perception install-train clean
 
 help: ## list the targets
@@ -27,7 +28,7 @@ help: ## list the targets
 $(BIN)/cosim5g: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[api,plots,dev]'
+	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray]'
 	@touch $@
 
 install: $(BIN)/cosim5g ## create .venv and install the project with its test tools
@@ -39,11 +40,11 @@ smoke: $(BIN)/cosim5g ## run the 2-loop smoke scenario in the process runtime
 	$(BIN)/cosim5g run configs/scenarios/smoke.yaml --results $(RESULTS)
 
 lint: $(BIN)/cosim5g ## ruff over the code
-	$(BIN)/ruff check coordinator services netsim benchmarks tests
+	$(BIN)/ruff check coordinator services netsim experiments benchmarks tests
 
 test: $(BIN)/cosim5g ## ruff, mypy, then every test (docker tests run when a Docker daemon answers)
-	$(BIN)/ruff check coordinator services netsim benchmarks tests
-	$(BIN)/mypy coordinator services netsim benchmarks
+	$(BIN)/ruff check coordinator services netsim experiments benchmarks tests
+	$(BIN)/mypy coordinator services netsim experiments benchmarks
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 test-unit: $(BIN)/cosim5g ## fast unit tests only (in-memory bus)
@@ -54,6 +55,13 @@ test-integration: $(BIN)/cosim5g ## runs over real zenoh and real processes
 
 bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
+
+JOBS ?= 1
+reproduce: $(BIN)/cosim5g ## the study's sweep (loops 2..36 x none/heuristic x 3 seeds, 60 s points): capacity, Fig. 4-6, report
+	$(BIN)/cosim5g sweep configs/sweeps/reproduce.yaml --jobs $(JOBS)
+
+reproduce-quick: $(BIN)/cosim5g ## the same, short: loops 4..36 step 4, one seed, 15 s points (results/sweeps/)
+	$(BIN)/cosim5g sweep configs/sweeps/quick.yaml --jobs $(JOBS)
 
 images: $(BIN)/cosim5g ## build the runtime and Prometheus images without a registry (see docs/docker.md)
 	PYTHON=$(PYTHON) bash images/build.sh
@@ -76,7 +84,7 @@ bench-docker: images ## make bench plus the smoke run in containers: docker/proc
 	$(BIN)/python -m benchmarks.platform_bench --docker
 
 install-train: $(BIN)/cosim5g ## add torch + onnx to .venv (several GB: PyPI's torch brings CUDA libraries)
-	$(BIN)/pip install --quiet -e '.[api,plots,dev,train]'
+	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray,train]'
 
 train-perception: install-train ## render the pose data set, train the Edge pose network (CPU), export pose.onnx, re-measure
 	$(BIN)/python -m services.edge.train.train --regenerate

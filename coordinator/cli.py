@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import signal
 import sys
 import threading
@@ -15,8 +16,10 @@ from typing import Any
 
 from coordinator.conductor import Progress
 from services.common.scenario import Scenario, ScenarioError, load_scenario
+from services.common.tables import write_json
 
 DEFAULT_RESULTS = Path("results") / "runs"
+DEFAULT_SWEEPS = Path("results") / "sweeps"
 
 
 def _progress_printer(stream: Any) -> Any:
@@ -31,6 +34,20 @@ def _progress_printer(stream: Any) -> Any:
         stream.flush()
 
     return show
+
+
+def _progress_writer(path: Path, every_s: float = 1.0) -> Any:
+    """Writes the run's progress as JSON at most once per ``every_s`` (a sweep's progress bar
+    reads it while the run goes)."""
+    last = [-every_s]
+
+    def write(p: Progress) -> None:
+        if p.wall_s - last[0] >= every_s or p.t_us >= p.end_us:
+            last[0] = p.wall_s
+            write_json(path, {"sim_time_s": p.t_us / 1e6, "end_s": p.end_us / 1e6, "wall_s": p.wall_s,
+                              "windows": p.windows})
+
+    return write
 
 
 def _fmt(v: Any) -> str:
@@ -49,6 +66,12 @@ def kpi_table(k: dict[str, Any]) -> str:
     width = max(len(r) for r in rows)
     lines = [f"{r:<{width}}  {_fmt(k.get(r))}" for r in rows if r in k and (r != "reason" or k[r])]
     return "\n".join(lines)
+
+
+def _run_id(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}", text):
+        raise argparse.ArgumentTypeError(f"{text!r}: a run id is letters, digits, '_', '.', '-' (at most 128)")
+    return text
 
 
 def _load(path: str, overrides: list[str]) -> Scenario:
@@ -81,8 +104,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    progress = None if args.quiet else _progress_printer(sys.stderr)
-    result = execute_run(sc, Path(args.results), on_progress=progress, cancel=cancel)
+    shows = [] if args.quiet else [_progress_printer(sys.stderr)]
+    if args.progress_file:
+        shows.append(_progress_writer(Path(args.progress_file)))
+
+    def progress(p: Progress) -> None:
+        for show in shows:
+            show(p)
+
+    result = execute_run(sc, Path(args.results), on_progress=progress, cancel=cancel, run_id=args.run_id)
     k = result.kpis
     if k.get("status") != "completed":
         print(f"run {result.run_id} {k.get('status')}: {k.get('reason')}", file=sys.stderr)
@@ -92,6 +122,99 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(k, sort_keys=True, default=str))
     return 0 if result.status == "completed" else 1
+
+
+def _sweep_progress(sweep: Any, jobs: int, stream: Any, stop: threading.Event) -> None:
+    """One status line, redrawn every second: points done / total, the running points'
+    simulated time, ETA."""
+    while not stop.wait(1.0):
+        s = sweep.progress.snapshot(jobs)
+        frac = s["done"] / s["total"] if s["total"] else 0.0
+        running = "; ".join(
+            f"{c['point']} sim {c['sim_time_s']:.1f}/{c['end_s']:.0f} s" if c["sim_time_s"] is not None
+            else f"{c['point']} starting" for c in s["running"])
+        eta = f"{s['eta_s'] / 60:.1f} min" if s["eta_s"] is not None else "-"
+        failed = f" ({s['failed']} failed)" if s["failed"] else ""
+        stream.write(f"\r[{'#' * int(frac * 20):<20}] {s['done']}/{s['total']} points{failed}"
+                     f" | {running or '-'} | ETA {eta}\x1b[K")
+        stream.flush()
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from experiments.executors import make_executor
+    from experiments.report import load_sweep_spec
+    from experiments.spec import SweepError, load_spec
+    from experiments.sweep import Sweep
+
+    try:
+        if args.resume:
+            sweep_dir = Path(args.resume)
+            spec = load_spec(args.file) if args.file else load_sweep_spec(sweep_dir)
+            sweep = Sweep(spec, sweep_dir)
+        elif args.file:
+            sweep = Sweep.create(load_spec(args.file), Path(args.results))
+        else:
+            print("give a sweep spec FILE, or --resume DIR", file=sys.stderr)
+            return 2
+        executor = make_executor(args.executor, args.jobs, args.address)
+    except SweepError as exc:
+        print(f"{args.file}: invalid sweep spec\n{exc.format()}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, ValueError, ImportError) as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    cancel = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        cancel.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    print(f"sweep {sweep.sweep_id}: {sweep.dir.path}", file=sys.stderr)
+
+    def on_event(kind: str, data: dict[str, Any]) -> None:
+        if kind == "point_done" and data["status"] != "completed":
+            print(f"\n  point {data['values']} seed {data['seed']}: {data['status']}: {data['reason']}",
+                  file=sys.stderr)
+
+    stop = threading.Event()
+    bar = None
+    if not args.quiet:
+        bar = threading.Thread(target=_sweep_progress, args=(sweep, args.jobs or 1, sys.stderr, stop), daemon=True)
+        bar.start()
+    try:
+        cap = sweep.run(executor, cancel, on_event)
+    finally:
+        stop.set()
+        if bar is not None:
+            bar.join()
+            sys.stderr.write("\n")
+    print(capacity_table(cap))
+    print(f"report: {sweep.dir.path / 'report.md'}")
+    meta = sweep.dir.meta()
+    return 0 if meta.get("state") == "completed" else 1
+
+
+def capacity_table(cap: dict[str, Any]) -> str:
+    labels = list(next(iter(cap["series"].values())).keys()) if cap.get("series") else []
+    width = max([len(n) for n in cap.get("series", {})] + [6])
+    lines = [f"{'series':<{width}}  " + "  ".join(f"{lab:>14}" for lab in labels)]
+    for name, entry in cap.get("series", {}).items():
+        lines.append(f"{name:<{width}}  " + "  ".join(f"{entry[lab]['capacity']!s:>14}" for lab in labels))
+    return "\n".join(lines)
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from experiments.report import rebuild
+
+    try:
+        cap = rebuild(Path(args.dir))
+    except FileNotFoundError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    print(capacity_table(cap))
+    print(f"report: {Path(args.dir) / 'report.md'}")
+    return 0
 
 
 def cmd_netsim(args: argparse.Namespace) -> int:
@@ -150,6 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the KPI JSON as the last stdout line")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--results", default=str(DEFAULT_RESULTS), help="folder for run directories")
+    r.add_argument("--run-id", type=_run_id, help="name of the run directory (default: scenario-time-random)")
+    r.add_argument("--progress-file", help="write the progress as JSON to this file while the run goes")
     r.set_defaults(fn=cmd_run)
     s = sub.add_parser("serve", help="REST API: start runs, follow them, /metrics")
     s.add_argument("--host", default="127.0.0.1")
@@ -165,6 +290,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--follow", action="store_true", help="wait for the end and print the KPIs")
     c.add_argument("--wait-s", type=float, default=120.0, help="how long to wait for the API")
     c.set_defaults(fn=cmd_submit)
+    w = sub.add_parser("sweep", help="run a sweep spec: every grid point x seed, then summary, capacity, figures")
+    w.add_argument("file", nargs="?", help="sweep spec (configs/sweeps/*.yaml); optional with --resume")
+    w.add_argument("--jobs", type=int, help="points run side by side (default: 1 locally, the cluster's CPUs on Ray)")
+    w.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local processes (default) or a Ray cluster")
+    w.add_argument("--address", help="Ray cluster to join (auto or HOST:PORT); default: start a local one")
+    w.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR: completed points are skipped")
+    w.add_argument("--results", default=str(DEFAULT_SWEEPS), help="folder for sweep directories")
+    w.add_argument("--quiet", action="store_true", help="no progress line")
+    w.set_defaults(fn=cmd_sweep)
+    rp = sub.add_parser("report", help="rebuild a sweep's tables, capacity, figures and report.md")
+    rp.add_argument("dir", help="a sweep directory (results/sweeps/<sweep_id>)")
+    rp.set_defaults(fn=cmd_report)
     n = sub.add_parser("netsim", help="standalone 5G NR cell (calibration, benchmarks)", add_help=False)
     n.add_argument("rest", nargs=argparse.REMAINDER)
     n.set_defaults(fn=cmd_netsim)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from services.common.tables import read_rows, write_table
 
@@ -96,3 +97,92 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
         "camera_bitrate_mbps_mean": float(np.mean(list(camera_mbps.values()))) if camera_mbps else 0.0,
         "compute_latency": node_latency,
     }
+
+
+def _column(path: Path, names: list[str]) -> dict[str, np.ndarray] | None:
+    """Columns of a Parquet table as numpy arrays (None where the file is absent or lacks one)."""
+    if not path.exists():
+        return None
+    table = pq.read_table(path)
+    if not set(names) <= set(table.column_names):
+        return None
+    return {n: table.column(n).to_numpy(zero_copy_only=False) for n in names}
+
+
+def _percentiles_ms(lat_us: np.ndarray) -> tuple[float | None, float | None]:
+    if lat_us.size == 0:
+        return None, None
+    p50, p99 = np.percentile(lat_us, [50, 99]) / 1000
+    return float(p50), float(p99)
+
+
+def loop_kpis(run_dir: Path, loops: int, detailed_loops: int, sim_time_s: float) -> list[dict[str, Any]]:
+    """Per-loop KPIs of a run, written to ``loops.parquet``: one row per control loop.
+
+    A knee in a sweep's success curve is traced back to loops with these: each loop's tasks and
+    their failure causes, the PDP its camera ran at, its uplink traffic, latency and losses.
+    """
+    sim = max(sim_time_s, 1e-9)
+    rows: list[dict[str, Any]] = [{"loop": i, "detailed": i < detailed_loops} for i in range(loops)]
+    tasks = _column(run_dir / "tasks.parquet", ["cell", "outcome", "reason"])
+    for r in rows:
+        r.update(tasks=0, placed=0, missed=0, dropped=0, failure_causes="")
+    if tasks is not None:
+        for i, r in enumerate(rows):
+            mine = tasks["cell"] == i
+            outcome = tasks["outcome"][mine]
+            reason = tasks["reason"][mine]
+            ended = outcome != "unfinished"
+            failed = ended & (outcome != "placed")
+            causes = Counter(f"{o}: {c}" if c else str(o) for o, c in zip(outcome[failed], reason[failed],
+                                                                        strict=True))
+            r.update(tasks=int(ended.sum()), placed=int((outcome == "placed").sum()),
+                     missed=int((outcome == "missed").sum()), dropped=int((outcome == "dropped").sum()),
+                     failure_causes="; ".join(f"{k} x{n}" for k, n in sorted(causes.items())))
+    for r in rows:
+        r["success_rate"] = r["placed"] / r["tasks"] if r["tasks"] else None
+
+    # PDP: the detailed cameras record it per frame; the abstract loops record frames and how many
+    # they kept, whose ratio is the mean PDP they ran at (each frame is kept with probability PDP).
+    for r in rows:
+        r.update(frames=0, frames_kept=0, mean_pdp=None)
+    frames = _column(run_dir / "frames.parquet", ["loop", "pdp", "kept"])
+    if frames is not None:
+        camera = ~np.isnan(frames["pdp"].astype(float))
+        for r in rows:
+            mine = camera & (frames["loop"] == r["loop"])
+            if mine.any():
+                r.update(frames=int(mine.sum()), frames_kept=int(frames["kept"][mine].astype(bool).sum()),
+                         mean_pdp=float(frames["pdp"][mine].astype(float).mean()))
+    abstract = _column(run_dir / "tables" / "abstract-loops.parquet", ["loop", "frames", "frames_kept"])
+    if abstract is not None:
+        for loop, n, kept in zip(abstract["loop"], abstract["frames"], abstract["frames_kept"], strict=True):
+            if 0 <= loop < loops and n:
+                rows[int(loop)].update(frames=int(n), frames_kept=int(kept), mean_pdp=float(kept) / float(n))
+
+    packets = _column(run_dir / "packets.parquet", ["ue", "dir", "size_bytes", "latency_us", "lost_cause"])
+    for r in rows:
+        r.update(ul_packets=0, ul_injected_mbps=0.0, ul_throughput_mbps=0.0, ul_latency_p50_ms=None,
+                 ul_latency_p99_ms=None, dl_latency_p50_ms=None, dl_latency_p99_ms=None, lost_packets=0,
+                 lost_causes="")
+    if packets is not None and packets["ue"].size:
+        # Each loop has two radio endpoints: camera-i (uplink video, downlink QoS) and robot-i.
+        loop_of = np.array([int(u.rsplit("-", 1)[1]) for u in packets["ue"]])
+        lat = packets["latency_us"].astype(float)
+        delivered = ~np.isnan(lat)
+        ul = packets["dir"] == "ul"
+        size = packets["size_bytes"].astype(np.int64)
+        for r in rows:
+            mine = loop_of == r["loop"]
+            mul, mdl = mine & ul, mine & ~ul
+            lost = mine & ~delivered
+            ul_p50, ul_p99 = _percentiles_ms(lat[mul & delivered])
+            dl_p50, dl_p99 = _percentiles_ms(lat[mdl & delivered])
+            causes = Counter(str(c) for c in packets["lost_cause"][lost])
+            r.update(ul_packets=int(mul.sum()), ul_injected_mbps=float(size[mul].sum()) * 8 / sim / 1e6,
+                     ul_throughput_mbps=float(size[mul & delivered].sum()) * 8 / sim / 1e6,
+                     ul_latency_p50_ms=ul_p50, ul_latency_p99_ms=ul_p99, dl_latency_p50_ms=dl_p50,
+                     dl_latency_p99_ms=dl_p99, lost_packets=int(lost.sum()),
+                     lost_causes="; ".join(f"{k} x{n}" for k, n in sorted(causes.items())))
+    write_table(run_dir / "loops.parquet", rows)
+    return rows

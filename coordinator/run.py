@@ -20,7 +20,7 @@ from typing import Any
 
 from coordinator.conductor import Conductor, Progress, RunFailed
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
-from coordinator.results import compute_kpis, versions
+from coordinator.results import compute_kpis, loop_kpis, versions
 from services.common import keys
 from services.common.scenario import Scenario, dump_scenario
 from services.common.tables import write_json
@@ -169,6 +169,10 @@ def execute_run(
         kpis = compute_kpis(run_dir, sim_s, scenario.loops)
     except Exception as exc:  # tables of a failed run may be missing or partial
         kpis = {"kpi_error": f"{type(exc).__name__}: {exc}"}
+    try:
+        loop_kpis(run_dir, scenario.loops, scenario.detailed_loops, sim_s)
+    except Exception as exc:
+        kpis["loop_kpi_error"] = f"{type(exc).__name__}: {exc}"
     summaries = {name: s.summary for name, s in sorted(stopped.items())}
     edge = summaries.get("edge", {})
     trace = conductor.trace_hash(stopped) if conductor is not None and status == "completed" else None

@@ -1,0 +1,123 @@
+"""The study's figures, one function each: a table in, a matplotlib Figure out.
+
+- Fig. 4: task success rate vs loops, one curve per series, 95% (Wilson) intervals;
+- Fig. 5: injected uplink traffic and uplink throughput vs loops, with the cell's measured
+  uplink capacity;
+- Fig. 6: CDF of uplink IP packet latency at a few loads per series, and its tail (1 - CDF) on a
+  log scale.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import MaxNLocator, ScalarFormatter  # noqa: E402
+
+from experiments.summary import series_name  # noqa: E402
+
+MARKERS = "osD^vP*X"
+
+
+def _load_axis(ax: Any, x: str, loads: list[Any]) -> None:
+    ax.set_xlabel(f"{x} (control loops in the cell)" if x == "loops" else x)
+    if all(isinstance(v, int) for v in loads):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+
+
+def _by_series(summary: list[dict[str, Any]], x: str, series_fields: list[str]) -> dict[str, list[dict[str, Any]]]:
+    out: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for row in summary:
+        out[series_name(row, series_fields)].append(row)
+    return {k: sorted(v, key=lambda r: r[x]) for k, v in out.items()}
+
+
+def success_figure(summary: list[dict[str, Any]], x: str, series_fields: list[str],
+                   thresholds: list[float]) -> Figure:
+    fig, ax = plt.subplots(figsize=(7, 4.2), layout="constrained")
+    for i, (name, rows) in enumerate(_by_series(summary, x, series_fields).items()):
+        rows = [r for r in rows if r["success_rate"] is not None]
+        xs = [r[x] for r in rows]
+        ys = np.array([r["success_rate"] * 100 for r in rows])
+        lo = ys - np.array([r["success_ci_low"] * 100 for r in rows])
+        hi = np.array([r["success_ci_high"] * 100 for r in rows]) - ys
+        ax.errorbar(xs, ys, yerr=[lo, hi], marker=MARKERS[i % len(MARKERS)], capsize=3, label=name)
+    for th in thresholds:
+        ax.axhline(th * 100, color="grey", lw=0.8, ls=":")
+    _load_axis(ax, x, [r[x] for r in summary])
+    ax.set_ylabel("task success rate (%)")
+    ax.set_title("Task success vs load (95% Wilson intervals)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    return fig
+
+
+def traffic_figure(summary: list[dict[str, Any]], x: str, series_fields: list[str],
+                   cell_capacity_mbps: float | None) -> Figure:
+    fig, ax = plt.subplots(figsize=(7, 4.2), layout="constrained")
+    for i, (name, rows) in enumerate(_by_series(summary, x, series_fields).items()):
+        colour = f"C{i}"
+        xs = [r[x] for r in rows]
+        for key, style, what in (("ul_injected_mbps", "--", "injected"), ("ul_throughput_mbps", "-", "throughput")):
+            ys = [r[key] if r[key] is not None else np.nan for r in rows]
+            err = [r[f"{key}_ci95"] or 0.0 for r in rows]
+            ax.errorbar(xs, ys, yerr=err, ls=style, marker=MARKERS[i % len(MARKERS)], color=colour,
+                        capsize=2, label=f"{name}: UL {what}")
+    if cell_capacity_mbps:
+        ax.axhline(cell_capacity_mbps, color="black", lw=1.0, ls="-.",
+                   label=f"cell UL capacity (measured) {cell_capacity_mbps:.1f} Mbit/s")
+    _load_axis(ax, x, [r[x] for r in summary])
+    ax.set_ylabel("Mbit/s")
+    ax.set_title("Uplink traffic injected and delivered")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return fig
+
+
+def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Figure:
+    """``latencies_ms``: series -> load -> delivered uplink packet latencies (ms)."""
+    fig, (ax, tail) = plt.subplots(1, 2, figsize=(10, 4.2), layout="constrained")
+    styles = ["-", "--", ":", "-."]
+    for i, (name, per_load) in enumerate(latencies_ms.items()):
+        for j, (load, lat) in enumerate(sorted(per_load.items())):
+            if lat.size == 0:
+                continue
+            v = np.sort(lat)
+            cdf = np.arange(1, v.size + 1) / v.size
+            label = f"{name}, {x}={load}"
+            ax.plot(v, cdf, color=f"C{i}", ls=styles[j % len(styles)], drawstyle="steps-post", label=label)
+            # P(latency >= v): never zero, so the last packets stay on the log scale.
+            tail.plot(v, 1 - np.arange(v.size) / v.size, color=f"C{i}", ls=styles[j % len(styles)],
+                      drawstyle="steps-post", label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("uplink IP packet latency (ms)")
+    ax.set_ylabel("CDF")
+    ax.set_title("Latency CDF")
+    ax.grid(alpha=0.3, which="both")
+    tail.set_xscale("log")
+    tail.set_yscale("log")
+    tail.set_xlabel("uplink IP packet latency (ms)")
+    tail.set_ylabel("P(latency >= x)")
+    for a in (ax, tail):
+        a.xaxis.set_major_formatter(ScalarFormatter())
+    tail.set_title("Tail")
+    tail.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def save(fig: Figure, stem: Any) -> list[str]:
+    """PNG and SVG beside each other; returns the file names."""
+    names = []
+    for ext in ("png", "svg"):
+        path = stem.with_suffix(f".{ext}")
+        fig.savefig(path, dpi=120)
+        names.append(path.name)
+    plt.close(fig)
+    return names

@@ -1,0 +1,106 @@
+"""Points as Ray tasks, for sweeps over a cluster of machines.
+
+Each point is a Ray task that runs one ``cosim5g run`` process on whichever node Ray picks (the
+same process the local executor runs, so the same scenario and seed give the same results), packs
+the run directory and returns it; the driver unpacks it into the sweep directory, so the nodes
+need no shared file system. Every node needs this project installed in the Python that its Ray
+worker runs (``pip install -e '.[ray]'`` in the same checkout), and Docker too for points with
+``runtime: docker``.
+
+``address``: ``auto`` or ``HOST:PORT`` joins a running cluster (``ray start --head`` on one
+machine, ``ray start --address HOST:PORT`` on the others); None starts a local one-machine
+cluster for this sweep and stops it afterwards.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import tarfile
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from experiments.executors import PointOutcome, PointTask, run_process
+
+
+def run_remote(config_yaml: str, run_id: str) -> dict[str, Any]:
+    """On a Ray worker: run the point and return its state, KPIs and the packed run directory."""
+    tmp = Path(tempfile.mkdtemp(prefix="cosim5g-point-"))
+    try:
+        config = tmp / "config.yaml"
+        config.write_text(config_yaml)
+        runs = tmp / "runs"
+        t0 = time.monotonic()
+        status, reason, kpis = run_process(config, runs, run_id, runs / f"{run_id}.log")
+        wall = time.monotonic() - t0
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+            for path in sorted(runs.iterdir()):
+                tar.add(path, arcname=path.name)
+        return {"status": status, "reason": reason, "kpis": kpis, "wall_s": wall, "archive": buf.getvalue()}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+class RayExecutor:
+    name = "ray"
+
+    def __init__(self, address: str | None = None, jobs: int | None = None, cpus_per_point: float = 1.0) -> None:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise ImportError("the ray executor needs Ray: pip install -e '.[ray]'") from None
+        self.address = address
+        self.jobs = jobs
+        self.cpus_per_point = cpus_per_point
+
+    def run(self, tasks: list[PointTask], on_start: Callable[[PointTask], None],
+            on_done: Callable[[PointTask, PointOutcome], None], cancel: threading.Event) -> None:
+        import ray
+
+        started_here = not ray.is_initialized()
+        if started_here:
+            if self.address:
+                ray.init(address=self.address, log_to_driver=False)
+            else:
+                ray.init(include_dashboard=False, log_to_driver=False)
+        try:
+            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            limit = self.jobs or max(1, int(cpus // self.cpus_per_point))
+            remote = ray.remote(num_cpus=self.cpus_per_point, max_retries=0)(run_remote)
+            queue = list(tasks)
+            pending: dict[Any, tuple[PointTask, float]] = {}
+            while (queue or pending) and not cancel.is_set():
+                while queue and len(pending) < limit:
+                    task = queue.pop(0)
+                    on_start(task)
+                    ref = remote.remote(task.config_path.read_text(), task.run_id)
+                    pending[ref] = (task, time.monotonic())
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+                for ref in ready:
+                    task, t0 = pending.pop(ref)
+                    on_done(task, self._outcome(ray, ref, task, t0))
+            for ref in pending:  # cancelled: the points in flight are rerun on resume
+                ray.cancel(ref, force=True)
+        finally:
+            if started_here:
+                ray.shutdown()
+
+    @staticmethod
+    def _outcome(ray: Any, ref: Any, task: PointTask, t0: float) -> PointOutcome:
+        run_dir = task.runs_dir / task.run_id
+        try:
+            res = ray.get(ref)
+        except Exception as exc:  # the worker or its node died: the point failed, the sweep goes on
+            return PointOutcome(task.point.key, task.run_id, "failed", f"ray task failed: {exc}"[:2000],
+                                run_dir, time.monotonic() - t0)
+        task.runs_dir.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(fileobj=io.BytesIO(res["archive"]), mode="r:gz") as tar:
+            tar.extractall(task.runs_dir, filter="data")
+        # The run directory recorded the worker's path; point it at where the sweep keeps it.
+        kpis = {**res["kpis"], "results_dir": str(run_dir)} if res["kpis"] else {}
+        return PointOutcome(task.point.key, task.run_id, res["status"], res["reason"], run_dir, res["wall_s"], kpis)

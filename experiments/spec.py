@@ -1,0 +1,239 @@
+"""The sweep spec: a base scenario, a grid over dotted scenario fields, seeds, and when to stop.
+
+A spec is YAML validated with the same field-level errors as a scenario::
+
+    name: quick
+    base: baseline                 # a shipped scenario (configs/scenarios/<name>.yaml) or a path
+    set: {duration_s: 15, detailed_loops: 0}   # fixed for every point
+    grid:
+      loops: {start: 4, stop: 36, step: 4}     # or a list: [4, 8, 12]
+      policy.name: [none, heuristic]
+    seeds: 1                       # a count (seeds 1..n) or a list
+    repeat_until: {min_tasks: 100, max_seeds: 8}   # add seeds to a grid point until it has this many tasks
+
+Every grid value, and every combination, is validated against the scenario schema when the spec
+is loaded, so a sweep never starts with a point that cannot run.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from services.common.scenario import Scenario, ScenarioError, load_scenario
+
+SCENARIOS_DIR = Path("configs") / "scenarios"
+
+
+class SpecModel(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Range(SpecModel):
+    """An inclusive arithmetic range of grid values."""
+
+    start: float = Field(description="first value")
+    stop: float = Field(description="last value (included when the steps land on it)")
+    step: float = Field(gt=0, description="increment, > 0")
+
+    def values(self) -> list[int | float]:
+        n = int((self.stop - self.start) / self.step + 1e-9) + 1
+        out = [self.start + i * self.step for i in range(max(n, 0))]
+        if all(float(v).is_integer() for v in (self.start, self.step)):
+            return [int(v) for v in out]
+        return [round(v, 12) for v in out]
+
+
+class RepeatUntil(SpecModel):
+    """Add seeds to a grid point until its runs hold enough tasks for a meaningful success rate."""
+
+    min_tasks: int = Field(ge=1, description="tasks (over all seeds of a grid point) to reach")
+    max_seeds: int = Field(default=10, ge=1, le=100, description="never more seeds than this per grid point")
+
+
+class CapacitySpec(SpecModel):
+    """How capacity is read off the sweep: the load axis and the success thresholds."""
+
+    x: str = Field(default="loops", description="grid field that is the load (the capacity axis)")
+    thresholds: list[float] = Field(default_factory=lambda: [1.0, 0.98], min_length=1,
+                                    description="task success rates a load must reach, in (0, 1]")
+    reference: str | None = Field(
+        default=None, description="series the gains are relative to, e.g. `policy.name=none` "
+        "(default: the first series of the grid)")
+
+    @field_validator("thresholds")
+    @classmethod
+    def _in_unit_interval(cls, v: list[float]) -> list[float]:
+        for t in v:
+            if not 0 < t <= 1:
+                raise ValueError(f"threshold {t} is not in (0, 1]")
+        return v
+
+
+class FigureSpec(SpecModel):
+    latency_loads: list[int | float] | None = Field(
+        default=None, description="loads (capacity.x values) whose latency CDF is drawn in Fig. 6 "
+        "(default: the smallest, a middle and the largest)")
+
+
+class SweepSpec(SpecModel):
+    """A whole sweep: every point is base + set + one grid combination, run once per seed."""
+
+    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]*$", description="sweep name (lower case, digits, _ and -)")
+    base: str = Field(description="base scenario: a name in configs/scenarios or a path to a YAML file")
+    set: dict[str, Any] = Field(default_factory=dict, description="dotted field -> value, fixed for every point")
+    grid: dict[str, list[Any] | Range] = Field(min_length=1, description="dotted field -> values to sweep")
+    seeds: int | list[int] = Field(default=1, description="a count n (seeds 1..n) or a list of seeds")
+    repeat_until: RepeatUntil | None = Field(default=None, description="add seeds until enough tasks")
+    capacity: CapacitySpec = Field(default_factory=CapacitySpec, description="capacity rule")
+    figures: FigureSpec = Field(default_factory=FigureSpec, description="figure options")
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, v: int | list[int]) -> int | list[int]:
+        if isinstance(v, int):
+            if not 1 <= v <= 1000:
+                raise ValueError(f"a seed count must be 1..1000, got {v}")
+        else:
+            if not v:
+                raise ValueError("the seed list is empty")
+            if len(set(v)) != len(v) or any(s < 0 for s in v):
+                raise ValueError("seeds must be distinct non-negative integers")
+        return v
+
+    @model_validator(mode="after")
+    def _capacity_axis(self) -> SweepSpec:
+        if self.capacity.x not in self.grid:
+            raise ValueError(f"capacity.x = {self.capacity.x!r} is not a grid field; grid fields: "
+                             f"{', '.join(self.grid)}")
+        return self
+
+    def seed_list(self) -> list[int]:
+        return list(range(1, self.seeds + 1)) if isinstance(self.seeds, int) else list(self.seeds)
+
+    def grid_values(self) -> dict[str, list[Any]]:
+        return {k: (v.values() if isinstance(v, Range) else list(v)) for k, v in self.grid.items()}
+
+    def combinations(self) -> list[dict[str, Any]]:
+        """Every grid combination, in grid order (the last field varies fastest)."""
+        grid = self.grid_values()
+        return [dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values())]
+
+
+class SweepError(ValueError):
+    """A spec that cannot run; ``errors`` lists (field, message) pairs, like ScenarioError."""
+
+    def __init__(self, errors: list[tuple[str, str]]) -> None:
+        self.errors = errors
+        super().__init__("; ".join(f"{f}: {m}" for f, m in errors))
+
+    def format(self) -> str:
+        return "\n".join(f"  {field}: {msg}" for field, msg in self.errors)
+
+
+def overrides(values: dict[str, Any]) -> list[str]:
+    """``field.path=value`` assignments (values as JSON, which YAML reads back unchanged)."""
+    return [f"{k}={json.dumps(v)}" for k, v in values.items()]
+
+
+def field_exists(path: str) -> str | None:
+    """None if ``path`` names a scenario field, else what is wrong with it."""
+    model: Any = Scenario
+    parts = path.split(".")
+    for i, part in enumerate(parts):
+        fields = getattr(model, "model_fields", None)
+        if fields is None or part not in fields:
+            where = ".".join(parts[:i]) or "the scenario"
+            allowed = ", ".join(sorted(fields)) if fields else "(none: not a section)"
+            return f"no field {part!r} in {where}; allowed there: {allowed}"
+        ann = fields[part].annotation
+        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+    return None
+
+
+def base_path(base: str, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> Path:
+    """The base scenario's file: a shipped name, or (from the CLI only) a path."""
+    named = scenarios_dir / f"{base}.yaml"
+    if named.is_file() and "/" not in base:
+        return named
+    if allow_paths and Path(base).is_file():
+        return Path(base)
+    known = sorted(p.stem for p in scenarios_dir.glob("*.yaml"))
+    raise SweepError([("base", f"{base!r} is not a shipped scenario ({', '.join(known)})"
+                               + (" nor a file" if allow_paths else ""))])
+
+
+def _format(exc: ValidationError) -> list[tuple[str, str]]:
+    out = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith(("list[", "Range"))) or "(sweep)"
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            section: Any = SweepSpec
+            for part in err["loc"][:-1]:
+                ann = getattr(section, "model_fields", {}).get(part)
+                section = getattr(ann, "annotation", None)
+            fields = getattr(section, "model_fields", None)
+            msg = f"unknown field; allowed here: {', '.join(sorted(fields))}" if fields else "unknown field"
+        out.append((loc, msg))
+    return out
+
+
+def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> SweepSpec:
+    """Validate a spec mapping, its grid paths, and every point's scenario; or raise SweepError."""
+    if not isinstance(data, dict):
+        raise SweepError([("(sweep)", f"expected a mapping of fields, got {type(data).__name__}")])
+    try:
+        spec = SweepSpec.model_validate(data)
+    except ValidationError as exc:
+        raise SweepError(_format(exc)) from None
+    errors: list[tuple[str, str]] = []
+    for section, paths in (("set", list(spec.set)), ("grid", list(spec.grid))):
+        for path in paths:
+            problem = field_exists(path)
+            if problem:
+                errors.append((f"{section}.{path}", problem))
+    for path, values in spec.grid_values().items():
+        if not values:
+            errors.append((f"grid.{path}", "no values: give at least one"))
+        if path in spec.set:
+            errors.append((f"grid.{path}", "also in `set`: a field is either fixed or swept"))
+    if errors:
+        raise SweepError(errors)
+    base = base_path(spec.base, scenarios_dir, allow_paths)
+    fixed = overrides(spec.set)
+    for path, values in spec.grid_values().items():  # each value alone, to name the bad one
+        for i, v in enumerate(values):
+            try:
+                load_scenario(base, [*fixed, *overrides({path: v})])
+            except ScenarioError as exc:
+                errors += [(f"grid.{path}[{i}]", f"{v!r}: {f}: {m}") for f, m in exc.errors]
+    if not errors:
+        for combo in spec.combinations():
+            try:
+                load_scenario(base, [*fixed, *overrides(combo)])
+            except ScenarioError as exc:
+                errors += [(f"grid point {combo}", f"{f}: {m}") for f, m in exc.errors]
+    if errors:
+        raise SweepError(errors)
+    return spec
+
+
+def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpec:
+    p = Path(path)
+    if not p.is_file():
+        raise SweepError([("file", f"{p} does not exist")])
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise SweepError([("file", f"{p} is not valid YAML: {exc}")]) from None
+    return parse_spec(data, scenarios_dir)
+
+
+def dump_spec(spec: SweepSpec) -> str:
+    return yaml.safe_dump(spec.model_dump(mode="json", exclude_none=True), sort_keys=False)

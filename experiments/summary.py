@@ -1,0 +1,149 @@
+"""Aggregation over seeds and the capacity rule.
+
+Per grid point: task success pooled over its seeds (placed / tasks) with a Wilson 95% interval (a
+proportion's interval that stays inside [0, 1] and is honest at 100% success), and for every
+continuous KPI the mean over seeds with a Student-t 95% interval (none from a single seed).
+
+Capacity: for each series (the grid combinations other than the load axis) and threshold, the
+largest load such that every load up to it in the grid reaches the threshold. A curve can dip and
+recover (noise, or a seed that drew a hard part): the first failing load bounds the capacity, and
+the record says where the curve recovers (``max_passing``, ``monotone``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from typing import Any
+
+# Continuous KPIs summarised per grid point (keys of points' flattened KPIs).
+METRICS = (
+    "ul_injected_mbps", "ul_throughput_mbps", "dl_throughput_mbps", "camera_bitrate_mbps_mean",
+    "ip_latency_ms.p50", "ip_latency_ms.p99", "ul_ip_latency_ms.p50", "ul_ip_latency_ms.p99",
+    "real_time_factor", "wall_time_s",
+)
+# Two-sided 95% Student-t quantiles by degrees of freedom (1..30); 1.96 beyond.
+_T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160,
+        2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056,
+        2.052, 2.048, 2.045, 2.042)
+
+
+def t95(df: int) -> float:
+    return _T95[df - 1] if 1 <= df <= len(_T95) else 1.96
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float | None, float | None]:
+    """Wilson score interval of a proportion."""
+    if n == 0:
+        return None, None
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_ci(values: list[float]) -> tuple[float | None, float | None]:
+    """Mean and the half-width of its 95% interval (None from fewer than two values)."""
+    if not values:
+        return None, None
+    m = sum(values) / len(values)
+    if len(values) < 2:
+        return m, None
+    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1))
+    return m, t95(len(values) - 1) * sd / math.sqrt(len(values))
+
+
+def summarise(points: list[dict[str, Any]], grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """One row per grid combination from the points table's rows (``kpi.*`` columns), in grid
+    order (``grid``: field -> values as the spec lists them)."""
+    grid_fields = list(grid)
+
+    def order(p: dict[str, Any]) -> list[int]:
+        return [grid[f].index(p.get(f)) if p.get(f) in grid[f] else len(grid[f]) for f in grid_fields]
+
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for p in sorted(points, key=order):
+        groups[json.dumps([p.get(f) for f in grid_fields])].append(p)
+    rows = []
+    for members in groups.values():
+        done = [p for p in members if p["status"] == "completed"]
+        tasks = sum(int(p.get("kpi.tasks") or 0) for p in done)
+        placed = sum(int(p.get("kpi.tasks_placed") or 0) for p in done)
+        low, high = wilson(placed, tasks)
+        row: dict[str, Any] = {f: members[0].get(f) for f in grid_fields}
+        row.update(runs=len(members), runs_completed=len(done),
+                   seeds=",".join(str(p["seed"]) for p in sorted(members, key=lambda p: p["seed"])),
+                   tasks=tasks, tasks_placed=placed, success_rate=placed / tasks if tasks else None,
+                   success_ci_low=low, success_ci_high=high)
+        for m in METRICS:
+            vals = [float(v) for p in done if (v := p.get(f"kpi.{m}")) is not None]
+            row[m], row[f"{m}_ci95"] = mean_ci(vals)
+        rows.append(row)
+    return rows
+
+
+def series_name(row: dict[str, Any], series_fields: list[str]) -> str:
+    return ", ".join(f"{f}={row.get(f)}" for f in series_fields) or "all"
+
+
+def capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str],
+             thresholds: list[float], reference: str | None = None) -> dict[str, Any]:
+    """Capacity per series and threshold, and each series' gain over the reference series."""
+    by_series: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for row in summary:
+        by_series[series_name(row, series_fields)].append(row)
+    out: dict[str, Any] = {"x": x, "thresholds": thresholds, "series": {}}
+    for name, rows in by_series.items():
+        rows = sorted(rows, key=lambda r: r[x])
+        entry: dict[str, Any] = {}
+        for th in thresholds:
+            entry[_label(th)] = capacity_of_curve([(r[x], r["success_rate"]) for r in rows], th)
+        out["series"][name] = entry
+    names = list(out["series"])
+    ref = reference if reference in out["series"] else (names[0] if names else None)
+    out["reference"] = ref
+    gains: dict[str, Any] = {}
+    for name in names:
+        if ref is None:
+            break
+        g = {}
+        for th in thresholds:
+            mine, theirs = out["series"][name][_label(th)]["capacity"], out["series"][ref][_label(th)]["capacity"]
+            g[_label(th)] = {"ratio": mine / theirs if mine is not None and theirs else None,
+                             "difference": mine - theirs if mine is not None and theirs is not None else None}
+        gains[name] = g
+    out["gain_over_reference"] = gains
+    return out
+
+
+def _label(threshold: float) -> str:
+    return f"success>={threshold * 100:g}%"
+
+
+def capacity_of_curve(curve: list[tuple[Any, float | None]], threshold: float) -> dict[str, Any]:
+    """``curve``: (load, success rate or None when the point has no result), sorted by load.
+
+    capacity: the largest load with every load up to it at or above the threshold (0 when the
+    smallest fails; a load without a result stops the scan, since nothing is known past it).
+    """
+    eps = 1e-12
+    cap: Any = 0
+    first_fail = None
+    missing = []
+    for load, rate in curve:
+        if rate is None:
+            missing.append(load)
+            if first_fail is None:
+                first_fail = load
+            continue
+        if rate + eps < threshold:
+            if first_fail is None:
+                first_fail = load
+        elif first_fail is None:
+            cap = load
+    passing = [load for load, rate in curve if rate is not None and rate + eps >= threshold]
+    max_passing = max(passing) if passing else 0
+    return {"capacity": cap, "first_failing": first_fail, "max_passing": max_passing,
+            "monotone": max_passing == cap, "missing": missing}

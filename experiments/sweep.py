@@ -1,0 +1,201 @@
+"""The sweep engine: expand a spec into points, run those not yet completed, record each as it
+ends, add seeds where a grid point has too few tasks, and rebuild the report.
+
+One engine for every caller (CLI, REST API, policy evaluation); the executor decides where the
+points run. A sweep directory is its own state: running the engine again on it (``--resume``)
+skips every point whose key completed and reruns the others.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from experiments.executors import Executor, PointOutcome, PointTask
+from experiments.points import Point, expand, make_point, write_point_config
+from experiments.records import SweepDir, flatten_kpis
+from experiments.report import rebuild
+from experiments.spec import SCENARIOS_DIR, SweepSpec, base_path, dump_spec
+
+DEFAULT_ROOT = Path("results") / "sweeps"
+
+
+def new_sweep_id(spec: SweepSpec) -> str:
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    return f"{spec.name}-{stamp}-{secrets.token_hex(3)}"
+
+
+@dataclass
+class InFlight:
+    label: str
+    progress_file: Path | None
+    started: float
+
+
+@dataclass
+class SweepProgress:
+    """What a progress bar or the REST API shows while a sweep runs."""
+
+    total: int = 0
+    done: int = 0
+    failed: int = 0
+    skipped: int = 0  # completed by an earlier invocation (resume)
+    wall0: float = field(default_factory=time.monotonic)
+    point_wall: list[float] = field(default_factory=list)
+    in_flight: dict[str, InFlight] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def snapshot(self, jobs: int = 1) -> dict[str, Any]:
+        with self.lock:
+            current: list[dict[str, Any]] = []
+            for run_id, f in self.in_flight.items():
+                sim = end = None
+                if f.progress_file is not None and f.progress_file.is_file():
+                    try:
+                        p = json.loads(f.progress_file.read_text())
+                        sim, end = p["sim_time_s"], p["end_s"]
+                    except (json.JSONDecodeError, KeyError, OSError):
+                        pass
+                current.append({"run_id": run_id, "point": f.label, "sim_time_s": sim, "end_s": end,
+                                "wall_s": time.monotonic() - f.started})
+            remaining = self.total - self.done - self.skipped
+            eta = None
+            if self.point_wall:
+                mean = sum(self.point_wall) / len(self.point_wall)
+                in_progress = sum(min(c["wall_s"], mean) for c in current)
+                eta = max(0.0, (remaining * mean - in_progress) / max(1, jobs))
+            return {"total": self.total, "done": self.done + self.skipped, "failed": self.failed,
+                    "running": current, "eta_s": eta, "wall_s": time.monotonic() - self.wall0}
+
+
+class Sweep:
+    """One sweep directory and the engine that fills it."""
+
+    def __init__(self, spec: SweepSpec, sweep_dir: Path, scenarios_dir: Path = SCENARIOS_DIR,
+                 allow_paths: bool = True) -> None:
+        self.spec = spec
+        self.dir = SweepDir(sweep_dir)
+        self.scenarios_dir = scenarios_dir
+        self.allow_paths = allow_paths
+        self.progress = SweepProgress()
+
+    @classmethod
+    def create(cls, spec: SweepSpec, root: Path = DEFAULT_ROOT, sweep_id: str | None = None,
+               scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> Sweep:
+        sweep_id = sweep_id or new_sweep_id(spec)
+        sweep = cls(spec, root / sweep_id, scenarios_dir, allow_paths)
+        sweep.dir.create({"sweep_id": sweep_id, "name": spec.name, "state": "pending",
+                          "created": datetime.now(UTC).isoformat(timespec="seconds")}, dump_spec(spec))
+        return sweep
+
+    @property
+    def sweep_id(self) -> str:
+        return str(self.dir.meta().get("sweep_id", self.dir.path.name))
+
+    def _task(self, point: Point) -> PointTask:
+        prefix = point.key[:12]
+        attempt = sum(1 for _ in self.dir.runs.glob(f"{prefix}-*/")) + 1
+        run_id = f"{prefix}-{attempt}"
+        return PointTask(point=point, config_path=write_point_config(point, self.dir.configs), run_id=run_id,
+                         runs_dir=self.dir.runs, progress_file=self.dir.progress / f"{run_id}.json",
+                         log_file=self.dir.path / "logs" / f"{run_id}.log")
+
+    def _record(self, task: PointTask, outcome: PointOutcome) -> dict[str, Any]:
+        return {"key": task.point.key, "values": task.point.values, "seed": task.point.seed,
+                "status": outcome.status, "reason": outcome.reason, "run_id": outcome.run_id,
+                "run_dir": str(outcome.run_dir.relative_to(self.dir.path)), "wall_s": round(outcome.wall_s, 3),
+                "kpis": flatten_kpis(outcome.kpis),
+                "finished": datetime.now(UTC).isoformat(timespec="seconds")}
+
+    def _more_seeds(self, points: list[Point]) -> list[Point]:
+        """Points for the extra seeds that grid points short of ``repeat_until.min_tasks`` need.
+
+        Counts every recorded run of a grid point, also those of seeds added by an earlier
+        invocation of a resumed sweep."""
+        rule = self.spec.repeat_until
+        if rule is None:
+            return []
+        seeds: dict[str, set[int]] = {}
+        values: dict[str, dict[str, Any]] = {}
+        for p in points:
+            seeds.setdefault(p.grid_id, set()).add(p.seed)
+            values[p.grid_id] = p.values
+        tasks: dict[str, list[int]] = {g: [] for g in seeds}
+        for r in self.dir.records():
+            g = json.dumps(r["values"], sort_keys=True)
+            if g in seeds:
+                seeds[g].add(r["seed"])
+                if r["status"] == "completed":
+                    tasks[g].append(int(r["kpis"].get("tasks") or 0))
+        base = base_path(self.spec.base, self.scenarios_dir, self.allow_paths)
+        extra: list[Point] = []
+        for g, used in seeds.items():
+            have, room = sum(tasks[g]), rule.max_seeds - len(used)
+            if have >= rule.min_tasks or room <= 0 or not tasks[g]:
+                continue
+            per_seed = have / len(tasks[g])
+            need = math.ceil((rule.min_tasks - have) / per_seed) if per_seed > 0 else 1
+            last = max(used)
+            extra += [make_point(self.spec, base, values[g], s)
+                      for s in range(last + 1, last + 1 + min(need, room))]
+        return extra
+
+    def run(self, executor: Executor, cancel: threading.Event | None = None,
+            on_event: Callable[[str, dict[str, Any]], None] | None = None) -> dict[str, Any]:
+        """Run the sweep to its end (or until cancelled); returns the capacity record."""
+        cancel = cancel or threading.Event()
+        emit = on_event or (lambda kind, data: None)
+        meta = {**self.dir.meta(), "state": "running", "executor": executor.name,
+                "started": datetime.now(UTC).isoformat(timespec="seconds")}
+        self.dir.write_meta(meta)
+        wall0 = time.monotonic()
+        points = expand(self.spec, self.scenarios_dir, allow_paths=self.allow_paths)
+        completed = self.dir.completed_keys()
+        prog = self.progress
+        prog.total = len(points)
+        prog.skipped = sum(1 for p in points if p.key in completed)
+        record_lock = threading.Lock()
+
+        def on_start(task: PointTask) -> None:
+            with prog.lock:
+                prog.in_flight[task.run_id] = InFlight(task.point.label(), task.progress_file, time.monotonic())
+            emit("point_started", {"run_id": task.run_id, "point": task.point.label()})
+
+        def on_done(task: PointTask, outcome: PointOutcome) -> None:
+            rec = self._record(task, outcome)
+            with record_lock:
+                self.dir.append(rec)
+            with prog.lock:
+                prog.in_flight.pop(task.run_id, None)
+                prog.done += 1
+                prog.failed += outcome.status != "completed"
+                prog.point_wall.append(outcome.wall_s)
+            if task.progress_file is not None:
+                task.progress_file.unlink(missing_ok=True)
+            emit("point_done", rec)
+
+        todo = [p for p in points if p.key not in completed]
+        while todo and not cancel.is_set():
+            executor.run([self._task(p) for p in todo], on_start, on_done, cancel)
+            if cancel.is_set():
+                break
+            todo = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
+            points += todo
+            with prog.lock:
+                prog.total = len(points)
+        state = "cancelled" if cancel.is_set() else "completed"
+        meta.update(state=state, finished=datetime.now(UTC).isoformat(timespec="seconds"),
+                    wall_s=round(time.monotonic() - wall0, 1), points=len(points))
+        self.dir.write_meta(meta)
+        cap = rebuild(self.dir.path)
+        emit("sweep_done", {"state": state, "capacity": cap})
+        return cap
+

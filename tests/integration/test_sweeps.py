@@ -1,0 +1,158 @@
+"""Sweeps end to end: real `cosim5g sweep` processes running real points (tiny scenarios)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).parents[2]
+MODEL_TIMING = {"nodes.camera.timing": "model", "nodes.edge.timing": "model", "nodes.robot.timing": "model"}
+FIGURES = ["fig4_success", "fig5_traffic", "fig6_latency_cdf"]
+
+
+def write_spec(path: Path, name: str, loops: list[int]) -> Path:
+    spec = {"name": name, "base": "baseline", "seeds": 1, "grid": {"loops": loops},
+            "set": {"duration_s": 2.5, "detailed_loops": 0, **MODEL_TIMING},
+            "figures": {"latency_loads": loops[:2]}}
+    path.write_text(json.dumps(spec))  # JSON is YAML
+    return path
+
+
+def sweep(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "coordinator.cli", "sweep", *args, "--quiet"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+
+
+def only_dir(root: Path) -> Path:
+    [d] = [p for p in root.iterdir() if p.is_dir()]
+    return d
+
+
+def run_processes_under(path: Path) -> list[int]:
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if str(path).encode() in (entry / "cmdline").read_bytes():
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path: Path) -> None:
+    spec = write_spec(tmp_path / "three.yaml", "three", [1, 2, 3])
+    results = tmp_path / "sweeps"
+    proc = subprocess.Popen([sys.executable, "-m", "coordinator.cli", "sweep", str(spec), "--results",
+                             str(results), "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    log = None
+    while time.monotonic() < deadline:
+        if results.exists() and any(results.iterdir()):
+            log = only_dir(results) / "points.jsonl"
+            if log.is_file() and log.read_text().count("\n") >= 1:
+                break
+        assert proc.poll() is None, "the sweep ended before it could be killed"
+        time.sleep(0.2)
+    assert log is not None
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    sweep_dir = log.parent
+    first = [json.loads(line) for line in log.read_text().splitlines()]
+    assert len(first) == 1 and first[0]["status"] == "completed"
+    # The point in flight dies with the sweep (parent-death signal), its federates with it.
+    deadline = time.monotonic() + 20
+    while run_processes_under(sweep_dir) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert run_processes_under(sweep_dir) == []
+
+    done = sweep(str(spec), "--resume", str(sweep_dir))
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in log.read_text().splitlines()]
+    assert sorted(r["values"]["loops"] for r in lines) == [1, 2, 3], "each point ran once"
+    assert lines[0] == first[0], "the completed point was kept, not rerun"
+    points = pq.read_table(sweep_dir / "points.parquet").to_pylist()
+    assert sorted(p["loops"] for p in points) == [1, 2, 3] and len({p["key"] for p in points}) == 3
+    assert all(p["status"] == "completed" and p["kpi.tasks"] >= 0 for p in points)
+    summary = pq.read_table(sweep_dir / "summary.parquet").to_pylist()
+    assert [r["loops"] for r in summary] == [1, 2, 3]
+    loops = pq.read_table(sweep_dir / "loops.parquet").to_pylist()
+    assert len(loops) == 1 + 2 + 3 and {r["loop"] for r in loops if r["loops"] == 3} == {0, 1, 2}
+    assert all(r["ul_packets"] > 0 and r["mean_pdp"] == 1.0 for r in loops)
+    cap = json.loads((sweep_dir / "capacity.json").read_text())
+    assert cap["series"]["all"]["success>=100%"]["capacity"] in (0, 1, 2, 3)
+    assert cap["cell_ul_capacity_mbps"] > 100
+    for stem in FIGURES:
+        for ext in ("png", "svg"):
+            assert (sweep_dir / f"{stem}.{ext}").stat().st_size > 1000
+    report = (sweep_dir / "report.md").read_text()
+    assert "## Capacity" in report and "fig4_success.png" in report
+
+    # The report is rebuilt from the records alone.
+    for stem in FIGURES:
+        (sweep_dir / f"{stem}.png").unlink()
+    (sweep_dir / "report.md").unlink()
+    rebuilt = subprocess.run([sys.executable, "-m", "coordinator.cli", "report", str(sweep_dir)], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120)
+    assert rebuilt.returncode == 0, rebuilt.stderr
+    assert (sweep_dir / "report.md").read_text() == report
+    assert all((sweep_dir / f"{stem}.png").is_file() for stem in FIGURES)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def ray_cluster():  # type: ignore[no-untyped-def]
+    pytest.importorskip("ray")
+    ray = str(Path(sys.executable).parent / "ray")
+    port = free_port()
+    # Ray's session folder holds unix sockets, whose paths must stay short (pytest's tmp_path is long).
+    temp = Path(tempfile.mkdtemp(prefix="ray-", dir="/tmp"))
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    common = ["--node-ip-address=127.0.0.1", "--num-cpus=1", "--disable-usage-stats"]
+    try:
+        subprocess.run([ray, "start", "--head", f"--port={port}", "--include-dashboard=false",
+                        f"--temp-dir={temp}", *common], check=True, env=env, capture_output=True,
+                       timeout=180)
+        subprocess.run([ray, "start", f"--address=127.0.0.1:{port}", *common], check=True, env=env,
+                       capture_output=True, timeout=180)
+        yield f"127.0.0.1:{port}"
+    finally:
+        subprocess.run([ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_ray_executor_gives_the_same_kpis_as_the_local_one(tmp_path: Path, ray_cluster: str) -> None:
+    spec = write_spec(tmp_path / "two.yaml", "two", [1, 2])
+    on_ray = sweep(str(spec), "--executor", "ray", "--address", ray_cluster, "--results", str(tmp_path / "ray"))
+    assert on_ray.returncode == 0, on_ray.stderr
+    local = sweep(str(spec), "--results", str(tmp_path / "local"))
+    assert local.returncode == 0, local.stderr
+
+    def kpis(root: Path) -> dict[int, tuple]:
+        rows = pq.read_table(only_dir(root) / "points.parquet").to_pylist()
+        return {r["loops"]: (r["key"], r["status"], r["kpi.trace_hash"], r["kpi.tasks"], r["kpi.tasks_placed"],
+                             r["kpi.ul_packets"], r["kpi.ul_ip_latency_ms.p99"]) for r in rows}
+
+    assert kpis(tmp_path / "ray") == kpis(tmp_path / "local")
+    assert all(k[2] for k in kpis(tmp_path / "ray").values()), "completed runs carry their trace hash"
+    ray_dir = only_dir(tmp_path / "ray")
+    for rec in (json.loads(line) for line in (ray_dir / "points.jsonl").read_text().splitlines()):
+        assert (ray_dir / rec["run_dir"] / "packets.parquet").is_file(), "the run directory came back"

@@ -1,0 +1,188 @@
+"""Sweep specs, points, the summary statistics and the capacity rule (no run is started)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coordinator.cli import main
+from experiments.points import expand
+from experiments.records import SweepDir, flatten_kpis, write_rows
+from experiments.spec import SweepError, load_spec, parse_spec
+from experiments.summary import capacity, capacity_of_curve, mean_ci, summarise, wilson
+
+ROOT = Path(__file__).parents[2]
+SCENARIOS = ROOT / "configs" / "scenarios"
+
+
+def spec(**fields: Any) -> dict[str, Any]:
+    base: dict[str, Any] = {"name": "t", "base": "baseline", "grid": {"loops": [2, 4]}, "seeds": 1}
+    base.update(fields)
+    return base
+
+
+def errors_of(data: dict[str, Any]) -> list[tuple[str, str]]:
+    with pytest.raises(SweepError) as exc:
+        parse_spec(data, SCENARIOS)
+    return exc.value.errors
+
+
+def test_shipped_specs_load_and_expand() -> None:
+    quick = load_spec(ROOT / "configs" / "sweeps" / "quick.yaml", SCENARIOS)
+    assert quick.grid_values()["loops"] == [4, 8, 12, 16, 20, 24, 28, 32, 36]
+    assert len(expand(quick, SCENARIOS)) == 18
+    full = load_spec(ROOT / "configs" / "sweeps" / "reproduce.yaml", SCENARIOS)
+    points = expand(full, SCENARIOS)
+    assert full.grid_values()["loops"] == list(range(2, 37, 2))
+    assert len(points) == 18 * 2 * 3
+    assert {p.scenario.policy.name for p in points} == {"none", "heuristic"}
+    assert all(p.scenario.detailed_loops == 0 and p.scenario.duration_s == 60.0 for p in points)
+
+
+def test_unknown_field_is_named_with_the_allowed_ones() -> None:
+    [(field, msg)] = errors_of(spec(grids={"loops": [2]}))
+    assert field == "grids" and "allowed here" in msg and "grid" in msg
+
+
+def test_unknown_dotted_path_names_the_part_and_the_section() -> None:
+    errs = dict(errors_of(spec(grid={"policy.nme": ["none"], "loops": [2]})))
+    assert "no field 'nme' in policy" in errs["grid.policy.nme"]
+    assert "allowed there" in errs["grid.policy.nme"] and "name" in errs["grid.policy.nme"]
+
+
+def test_empty_grid_and_empty_values_are_refused() -> None:
+    assert errors_of(spec(grid={}))[0][0] == "grid"
+    assert ("grid.loops", "no values: give at least one") in errors_of(spec(grid={"loops": []}))
+
+
+def test_a_bad_grid_value_is_named_by_its_index() -> None:
+    errs = dict(errors_of(spec(grid={"loops": [2, 500]})))
+    assert "grid.loops[1]" in errs and "500" in errs["grid.loops[1]"]
+    errs = dict(errors_of(spec(grid={"policy.name": ["none", "clever"], "loops": [2]})))
+    assert "clever" in errs["grid.policy.name[1]"]
+
+
+def test_a_combination_that_breaks_a_scenario_rule_is_refused() -> None:
+    errs = errors_of(spec(grid={"loops": [1, 4], "detailed_loops": [2]}))
+    assert errs and "detailed_loops" in errs[0][1] and "loops" in errs[0][0]
+
+
+def test_unknown_base_and_capacity_axis_are_named() -> None:
+    assert errors_of(spec(base="nonesuch"))[0][0] == "base"
+    assert "capacity.x" in errors_of(spec(capacity={"x": "seed"}))[0][1]
+
+
+def test_cli_exits_2_naming_the_field(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: t\nbase: baseline\ngrid: {loops: [2], policy.nme: [none]}\n")
+    assert main(["sweep", str(bad), "--results", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "grid.policy.nme" in err and "Traceback" not in err
+    assert not any(tmp_path.glob("t-*")), "no sweep directory for a spec that cannot run"
+
+
+def test_points_are_keyed_by_resolved_config_and_seed() -> None:
+    s = parse_spec(spec(seeds=[1, 2]), SCENARIOS)
+    a, b = expand(s, SCENARIOS), expand(s, SCENARIOS)
+    assert [p.key for p in a] == [p.key for p in b]
+    assert len({p.key for p in a}) == 4
+    # The same point reached through a range or a list, or another base default, is the same run.
+    r = parse_spec(spec(grid={"loops": {"start": 2, "stop": 4, "step": 2}}, seeds=[1, 2]), SCENARIOS)
+    assert [p.key for p in expand(r, SCENARIOS)] == [p.key for p in a]
+
+
+def test_range_values() -> None:
+    s = parse_spec(spec(grid={"loops": {"start": 2, "stop": 36, "step": 2}}), SCENARIOS)
+    assert s.grid_values()["loops"] == list(range(2, 37, 2))
+    s = parse_spec(spec(grid={"loops": [2], "policy.pdp": {"start": 0.2, "stop": 0.6, "step": 0.2}}), SCENARIOS)
+    assert s.grid_values()["policy.pdp"] == [0.2, 0.4, 0.6]
+
+
+def test_wilson_interval_and_mean_ci() -> None:
+    low, high = wilson(10, 10)
+    assert high == 1.0 and 0.69 < low < 0.73  # 10/10 does not prove 100%
+    low, high = wilson(0, 0)
+    assert low is None and high is None
+    m, half = mean_ci([1.0, 2.0, 3.0])
+    assert m == 2.0 and half == pytest.approx(4.303 * 1.0 / 3 ** 0.5, rel=1e-3)
+    assert mean_ci([5.0]) == (5.0, None)
+
+
+def test_capacity_of_a_monotone_curve() -> None:
+    curve = [(4, 1.0), (8, 1.0), (12, 0.99), (16, 0.9)]
+    assert capacity_of_curve(curve, 1.0)["capacity"] == 8
+    assert capacity_of_curve(curve, 0.98)["capacity"] == 12
+    c = capacity_of_curve(curve, 0.98)
+    assert c["first_failing"] == 16 and c["monotone"]
+
+
+def test_capacity_of_a_non_monotone_curve_stops_at_the_first_failure() -> None:
+    curve = [(4, 1.0), (8, 0.97), (12, 1.0), (16, 1.0), (20, 0.5)]
+    c = capacity_of_curve(curve, 1.0)
+    assert c["capacity"] == 4 and c["first_failing"] == 8
+    assert c["max_passing"] == 16 and not c["monotone"]
+    assert capacity_of_curve(curve, 0.95)["capacity"] == 16
+
+
+def test_capacity_edge_cases() -> None:
+    assert capacity_of_curve([(4, 0.5), (8, 1.0)], 1.0)["capacity"] == 0
+    c = capacity_of_curve([(4, 1.0), (8, None), (12, 1.0)], 1.0)
+    assert c["capacity"] == 4 and c["missing"] == [8]  # nothing is known past a missing point
+    assert capacity_of_curve([(4, 1.0), (8, 1.0)], 1.0)["first_failing"] is None
+
+
+def point(loops: int, policy: str, seed: int, tasks: int, placed: int, status: str = "completed",
+          **kpis: float) -> dict[str, Any]:
+    return {"key": f"{loops}{policy}{seed}", "loops": loops, "policy.name": policy, "seed": seed,
+            "status": status, "kpi.tasks": tasks, "kpi.tasks_placed": placed, **{f"kpi.{k}": v for k, v in kpis.items()}}
+
+
+def test_summary_pools_tasks_over_seeds_and_capacity_gain() -> None:
+    points = [
+        point(4, "heuristic", 1, 50, 50, ul_injected_mbps=10.0), point(4, "heuristic", 2, 50, 50, ul_injected_mbps=12.0),
+        point(4, "none", 1, 50, 50), point(4, "none", 2, 50, 50),
+        point(8, "none", 1, 100, 99), point(8, "none", 2, 100, 96),
+        point(8, "heuristic", 1, 100, 100), point(8, "heuristic", 2, 100, 100, status="failed"),
+        point(12, "none", 1, 150, 100), point(12, "heuristic", 1, 150, 149),
+    ]
+    grid = {"loops": [4, 8, 12], "policy.name": ["none", "heuristic"]}
+    rows = summarise(points, grid)
+    assert [(r["loops"], r["policy.name"]) for r in rows] == [
+        (4, "none"), (4, "heuristic"), (8, "none"), (8, "heuristic"), (12, "none"), (12, "heuristic")]
+    r8 = rows[2]
+    assert r8["tasks"] == 200 and r8["success_rate"] == pytest.approx(195 / 200)
+    assert r8["success_ci_low"] < 0.975 < r8["success_ci_high"]
+    h8 = rows[3]
+    assert (h8["runs"], h8["runs_completed"], h8["tasks"]) == (2, 1, 100)  # a failed run adds no tasks
+    assert rows[1]["ul_injected_mbps"] == pytest.approx(11.0) and rows[1]["ul_injected_mbps_ci95"] > 0
+    cap = capacity(rows, "loops", ["policy.name"], [1.0, 0.98], reference="policy.name=none")
+    assert cap["series"]["policy.name=none"]["success>=100%"]["capacity"] == 4
+    assert cap["series"]["policy.name=heuristic"]["success>=100%"]["capacity"] == 8
+    assert cap["series"]["policy.name=heuristic"]["success>=98%"]["capacity"] == 12
+    assert cap["gain_over_reference"]["policy.name=heuristic"]["success>=100%"]["ratio"] == 2.0
+
+
+def test_records_keep_the_latest_line_of_a_point_and_survive_a_torn_line(tmp_path: Path) -> None:
+    sd = SweepDir(tmp_path)
+    sd.create({"sweep_id": "x"}, "name: x\n")
+    sd.append({"key": "a", "values": {"loops": 2}, "seed": 1, "status": "failed", "run_id": "a-1",
+               "run_dir": "runs/a-1", "kpis": {}})
+    sd.append({"key": "a", "values": {"loops": 2}, "seed": 1, "status": "completed", "run_id": "a-2",
+               "run_dir": "runs/a-2", "kpis": {"tasks": 3}})
+    with open(sd.log_path, "a") as f:
+        f.write('{"key": "b", "valu')  # a crash in the middle of a line
+    rows = sd.write_points_table()
+    assert [(r["key"], r["status"], r["run_id"], r["kpi.tasks"]) for r in rows] == [("a", "completed", "a-2", 3)]
+    assert sd.completed_keys() == {"a"}
+
+
+def test_flatten_and_typed_columns(tmp_path: Path) -> None:
+    flat = flatten_kpis({"tasks": 3, "ip_latency_ms": {"p50": 5.0}, "lost_packets": {}, "federates": {"x": 1},
+                         "log_tail": ["a"], "reason": None})
+    assert flat == {"tasks": 3, "ip_latency_ms.p50": 5.0, "reason": None}
+    import pyarrow.parquet as pq
+    write_rows(tmp_path / "t.parquet", [{"a": 1, "b": "x"}, {"a": 2.5, "c": True}])
+    t = pq.read_table(tmp_path / "t.parquet")
+    assert str(t.schema.field("a").type) == "double" and t.column("c").to_pylist() == [None, True]
