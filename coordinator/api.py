@@ -20,9 +20,11 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 
+from coordinator.api_sweeps import add_sweep_routes
 from coordinator.conductor import Progress
 from coordinator.run import execute_run, new_run_id
 from coordinator.store import RunStore
+from experiments.service import SweepService
 from services.common.scenario import ScenarioError, load_scenario, parse_scenario
 
 RUNS = Counter("cosim_coordinator_runs_total", "Runs finished, by final state", ["status"])
@@ -49,6 +51,7 @@ class Coordinator:
         self.store = RunStore(db_path)
         self.store.reap_orphans()
         self.queue: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
+        self.busy = threading.Lock()  # held while a simulation runs (a run here, or a sweep point)
         self.cancels: dict[str, threading.Event] = {}
         self.worker = threading.Thread(target=self._work, daemon=True, name="runs")
         self.worker.start()
@@ -96,7 +99,8 @@ class Coordinator:
                     RTF.set(rtf)
                     self.store.set_progress(run_id, p.t_us / 1e6, rtf)
 
-                result = execute_run(sc, self.results_root, on_progress=progress, cancel=cancel, run_id=run_id)
+                with self.busy:
+                    result = execute_run(sc, self.results_root, on_progress=progress, cancel=cancel, run_id=run_id)
                 self.store.finish(run_id, result.status, result.reason, result.kpis)
                 RUNS.labels(result.status).inc()
             except Exception as exc:  # the worker must survive a broken run
@@ -125,16 +129,25 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
     return out
 
 
-def create_app(results_root: Path, db_path: Path, scenarios_dir: Path) -> FastAPI:
+def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_root: Path | None = None,
+               sweeps_dir: Path | None = None, sweep_jobs: int = 1) -> FastAPI:
     coord = Coordinator(results_root, db_path, scenarios_dir)
+    sweeps_root = sweeps_root or results_root.parent / "sweeps"
+    sweeps_dir = sweeps_dir or scenarios_dir.parent / "sweeps"
+    # Single runs and sweep points share the host: one of them at a time.
+    sweeps = SweepService(db_path, sweeps_root, scenarios_dir, jobs=sweep_jobs, busy=coord.busy)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         yield
+        sweeps.close()
         coord.close()
 
     app = FastAPI(title="cosim5g coordinator", version="0.1.0", lifespan=lifespan)
     app.state.coordinator = coord
+    app.state.sweeps = sweeps
+    add_sweep_routes(app, sweeps, sweeps_dir, scenarios_dir,
+                     recent_runs=lambda: coord.store.list(limit=20))
 
     @app.exception_handler(ScenarioError)
     async def invalid_scenario(_: Any, exc: ScenarioError) -> JSONResponse:

@@ -231,7 +231,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from coordinator.api import create_app
 
-    app = create_app(Path(args.results), Path(args.db), Path(args.scenarios))
+    app = create_app(Path(args.results), Path(args.db), Path(args.scenarios), Path(args.sweeps),
+                     Path(args.sweep_specs), args.sweep_jobs)
     uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     return 0
 
@@ -239,6 +240,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_submit(args: argparse.Namespace) -> int:
     from coordinator.client import ApiError, call, follow, wait_healthy
 
+    if args.sweep:
+        return _submit_sweep(args)
+    if not args.scenario:
+        print("give a SCENARIO name, or --sweep SPEC", file=sys.stderr)
+        return 2
     try:
         wait_healthy(args.api, args.wait_s)
         body = {"scenario": args.scenario, "overrides": args.set or []}
@@ -258,6 +264,28 @@ def cmd_submit(args: argparse.Namespace) -> int:
             print(f"  | {line}", file=sys.stderr)
     print(kpi_table({**k, "status": run["status"], "reason": run.get("reason")}))
     return 0 if run["status"] == "completed" else 1
+
+
+def _submit_sweep(args: argparse.Namespace) -> int:
+    from coordinator.client import ApiError, call, follow_sweep, wait_healthy
+
+    try:
+        wait_healthy(args.api, args.wait_s)
+        sweep_id = call(args.api, "POST", "/sweeps", {"spec": args.sweep})["sweep_id"]
+        print(f"sweep {sweep_id} submitted to {args.api}", file=sys.stderr)
+        if not args.follow:
+            print(sweep_id)
+            return 0
+        s = follow_sweep(args.api, sweep_id)
+    except ApiError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    if s["state"] != "completed":
+        print(f"sweep {sweep_id} {s['state']}: {s.get('reason')}", file=sys.stderr)
+    if s.get("capacity"):
+        print(capacity_table(s["capacity"]))
+    print(f"report: {args.api}/sweeps/{sweep_id}")
+    return 0 if s["state"] == "completed" else 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -282,12 +310,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--results", default=str(DEFAULT_RESULTS))
     s.add_argument("--db", default="results/cosim5g.db")
     s.add_argument("--scenarios", default="configs/scenarios")
+    s.add_argument("--sweeps", default=str(DEFAULT_SWEEPS), help="folder for sweep directories")
+    s.add_argument("--sweep-specs", default="configs/sweeps", help="the shipped sweep specs")
+    s.add_argument("--sweep-jobs", type=int, default=1, help="points of a sweep run side by side")
     s.set_defaults(fn=cmd_serve)
-    c = sub.add_parser("submit", help="start a run through the coordinator's REST API")
-    c.add_argument("scenario", help="name of a scenario in the coordinator's configs/scenarios/")
+    c = sub.add_parser("submit", help="start a run (or a sweep) through the coordinator's REST API")
+    c.add_argument("scenario", nargs="?", help="name of a scenario in the coordinator's configs/scenarios/")
+    c.add_argument("--sweep", metavar="SPEC", help="start a sweep instead: a name in configs/sweeps/")
     c.add_argument("--api", default="http://127.0.0.1:8080")
     c.add_argument("--set", action="append", metavar="FIELD=VALUE")
-    c.add_argument("--follow", action="store_true", help="wait for the end and print the KPIs")
+    c.add_argument("--follow", action="store_true", help="wait for the end and print the KPIs (or the capacity)")
     c.add_argument("--wait-s", type=float, default=120.0, help="how long to wait for the API")
     c.set_defaults(fn=cmd_submit)
     w = sub.add_parser("sweep", help="run a sweep spec: every grid point x seed, then summary, capacity, figures")

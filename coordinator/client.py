@@ -18,17 +18,21 @@ class ApiError(RuntimeError):
 
 
 def request(base: str, method: str, path: str, body: Any = None, timeout_s: float = 30.0) -> tuple[int, Any]:
-    """HTTP status and decoded JSON body (or text) of one API call; raises ApiError if unreachable."""
+    """HTTP status and decoded JSON body (text, or bytes for files) of one API call; raises ApiError
+    if unreachable."""
     data = None if body is None else json.dumps(body).encode()
     req = urllib.request.Request(base.rstrip("/") + path, data=data, method=method,
                                  headers={"content-type": "application/json"})
     try:
         with urllib.request.urlopen(req, timeout=timeout_s) as resp:
-            status, raw = resp.status, resp.read().decode()
+            status, ctype, body = resp.status, resp.headers.get_content_type(), resp.read()
     except urllib.error.HTTPError as err:
-        status, raw = err.code, err.read().decode()
+        status, ctype, body = err.code, err.headers.get_content_type(), err.read()
     except (urllib.error.URLError, OSError) as err:
         raise ApiError(f"coordinator at {base} is not reachable: {err}") from None
+    if not (ctype.startswith("text/") or ctype.endswith("json")):
+        return status, body  # a figure or a table: bytes
+    raw = body.decode()
     try:
         return status, json.loads(raw)
     except json.JSONDecodeError:
@@ -70,5 +74,22 @@ def follow(base: str, run_id: str, stream: Any = sys.stderr, poll_s: float = 1.0
         total = run["config"]["duration_s"]
         rtf = run.get("real_time_factor") or 0.0
         stream.write(f"\r{run_id}: {run['status']:<8} sim {sim:7.2f}/{total:.2f} s  rtf {rtf:5.2f}")
+        stream.flush()
+        time.sleep(poll_s)
+
+
+def follow_sweep(base: str, sweep_id: str, stream: Any = sys.stderr, poll_s: float = 2.0) -> dict[str, Any]:
+    """Poll a sweep until it ends, showing points done / total and the points running; the sweep."""
+    while True:
+        s = call(base, "GET", f"/sweeps/{sweep_id}")
+        if s["state"] not in ("pending", "running"):
+            stream.write("\n")
+            return dict(s)
+        prog = s["progress"]
+        running = ", ".join(" ".join(f"{k}={v}" for k, v in p["values"].items()) + f" sim {p.get('sim_time_s') or 0:.1f} s"
+                            for p in s["points"] if p["state"] == "running")
+        eta = f"ETA {prog['eta_s'] / 60:.1f} min" if prog.get("eta_s") is not None else ""
+        stream.write(f"\r{sweep_id}: {s['state']:<8} {prog['points_done']}/{prog['points_total']} points "
+                     f"{running} {eta}\x1b[K")
         stream.flush()
         time.sleep(poll_s)

@@ -135,7 +135,9 @@ class LocalExecutor:
                 return
             on_start(task)
             outcome = run_point(task, procs)
-            if not cancel.is_set() or outcome.status != "cancelled":
+            # A point the cancel interrupted is no result (it may even have died before it could
+            # say so): it stays unrecorded and runs again on resume.
+            if not cancel.is_set() or outcome.status == "completed":
                 on_done(task, outcome)
 
         def forward_cancel() -> None:

@@ -18,7 +18,7 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.ticker import MaxNLocator, ScalarFormatter  # noqa: E402
+from matplotlib.ticker import FuncFormatter, MaxNLocator  # noqa: E402
 
 from experiments.summary import series_name  # noqa: E402
 
@@ -104,8 +104,9 @@ def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Fi
     tail.set_yscale("log")
     tail.set_xlabel("uplink IP packet latency (ms)")
     tail.set_ylabel("P(latency >= x)")
-    for a in (ax, tail):
-        a.xaxis.set_major_formatter(ScalarFormatter())
+    for a in (ax, tail):  # 3, 5, 10 ms rather than 3x10^0
+        a.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        a.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if str(f"{v:g}")[0] in "1235" else ""))
     tail.set_title("Tail")
     tail.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)

@@ -135,7 +135,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
             e = entry[lab]
             note = "" if e["monotone"] else f" (passes again up to {e['max_passing']})"
             cells.append(f"{e['capacity']}{note}")
-        gain = " / ".join(f"{_f(g['ratio'])}x" for g in gains.values())
+        gain = " / ".join(f"{g['ratio']:.3g}x" if g["ratio"] is not None else "-" for g in gains.values())
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain} |")
     if cell:
         lines += ["", f"Cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
