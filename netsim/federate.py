@@ -10,7 +10,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from netsim.cell import Cell, FlowQos, Packet, PacketOutcome
+from netsim.cell import (
+    LOSS_BUFFER,
+    LOSS_CHANNEL,
+    LOSS_DELAY_BUDGET,
+    Cell,
+    FlowQos,
+    Packet,
+    PacketOutcome,
+)
 from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
 from services.common import metrics
@@ -53,6 +61,12 @@ class NetsimFederate(Federate):
         self.slot_scheduled: int | None = None
         self.records: list[dict[str, Any]] = []
         self.flow_pdb: dict[str, int | None] = {}
+        # Simulated-time rates for the dashboards, refreshed every simulated second.
+        self.delivered_bits = {"ul": 0, "dl": 0}
+        self.rates_at: tuple[int, dict[str, int], dict[str, float]] = (0, dict(self.delivered_bits), self._prb_slots())
+        for direction in ("ul", "dl"):  # every loss cause has its series from the start, at zero
+            for cause in (LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET):
+                metrics.PACKETS.labels(direction, cause)
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "packet":
@@ -78,8 +92,27 @@ class NetsimFederate(Federate):
             self.slot_scheduled = t_us
             self.schedule(t_us, self._slot, after_inputs=True)
 
+    def _prb_slots(self) -> dict[str, float]:
+        """PRB-slots used so far per link, in units of whole-cell slots."""
+        st = self.cell.stats()
+        if "ul" in st and isinstance(st["ul"], dict):  # NR cell: utilisation over all slots so far
+            return {d: st[d]["prb_utilisation"] * st["slots"] for d in ("ul", "dl")}
+        return {d: float(st.get(f"{d}_busy_slots", 0)) for d in ("ul", "dl")}
+
+    def _publish_rates(self) -> None:
+        t0, bits0, prb0 = self.rates_at
+        span_s = (self.now - t0) / 1e6
+        prb = self._prb_slots()
+        slots = max(1.0, (self.now - t0) / self.slot_us)
+        for d in ("ul", "dl"):
+            metrics.THROUGHPUT.labels(d).set((self.delivered_bits[d] - bits0[d]) / span_s)
+            metrics.PRB_UTILISATION.labels(d).set(min(1.0, (prb[d] - prb0[d]) / slots))
+        self.rates_at = (self.now, dict(self.delivered_bits), prb)
+
     def _slot(self) -> None:
         self.slot_scheduled = None
+        if self.now - self.rates_at[0] >= 1_000_000:
+            self._publish_rates()
         for outcome in self.cell.run_slot(self.now):
             self._record(outcome)
             if outcome.deliver_us is not None:
@@ -97,6 +130,7 @@ class NetsimFederate(Federate):
         else:
             metrics.PACKETS.labels(p.direction, "delivered").inc()
             metrics.PACKET_BYTES.labels(p.direction).inc(p.size_bytes)
+            self.delivered_bits[p.direction] += 8 * p.size_bytes
             metrics.PACKET_LATENCY.labels(p.direction).observe((o.deliver_us - p.enqueue_us) / 1e6)
         self.records.append({
             "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": p.direction,

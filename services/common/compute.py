@@ -110,8 +110,8 @@ class ComputeNode:
         metrics.JOB_DURATION.labels(*labels).observe(duration / 1e6)
         metrics.JOB_QUEUE.labels(*labels).observe((start - arrival_us) / 1e6)
         metrics.JOB_CPU.labels(*labels).inc(cpu_ns / 1e9)
-        if throttled:
-            metrics.JOB_THROTTLED.labels(*labels).inc(throttled / 1e6)
+        if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
+            metrics.JOB_THROTTLED.labels(*labels).inc(max(0, throttled) / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
             queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu_ns // 1000,

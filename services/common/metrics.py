@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from prometheus_client import Counter, Histogram, start_http_server
+from prometheus_client import Counter, Gauge, Histogram, start_http_server
 
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
@@ -26,6 +26,14 @@ PACKET_LATENCY = Histogram("cosim_netsim_packet_latency_seconds", "IP packet lat
                            ["direction"], buckets=_LATENCY_BUCKETS)
 PACKETS = Counter("cosim_netsim_packets_total", "IP packets by fate", ["direction", "outcome"])
 PACKET_BYTES = Counter("cosim_netsim_delivered_bytes_total", "IP bytes delivered", ["direction"])
+# Rates over simulated time (a run is rarely real time, so wall-clock rates of the counters above
+# say how fast the simulation goes, these what the cell carries).
+THROUGHPUT = Gauge("cosim_netsim_throughput_bits_per_second",
+                   "IP bits delivered over the last simulated second", ["direction"])
+PRB_UTILISATION = Gauge("cosim_netsim_prb_utilisation",
+                        "Share of the PRBs of the last simulated second that carried data", ["direction"])
+TASKS = Counter("cosim_physics_tasks_total", "Pick-and-place tasks ended, by outcome", ["outcome"])
+LOOP_PDP = Gauge("cosim_loop_pdp", "Packet delivery probability the co-design policy set for a loop", ["loop"])
 
 
 def serve_from_env() -> int | None:

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from services.camera.codec import decode_frame, slot_after
+from services.common import metrics
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
@@ -91,6 +92,7 @@ class EdgeFederate(Federate):
             state = LoopState(self.now, self.trackers[loop].report(g.BELT_HALF_WIDTH),
                               self.last_frame_us[loop], sc.cell.belt_speed_m_s)
             qos, ready = self.cpu.run("policy", self.now, self.policy.decide, state)
+            metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
             last = self.qos_sent.get(loop)
             if last is None or last[0] != qos or self.now - last[1] >= QOS_REFRESH_US:
                 self.qos_sent[loop] = (qos, self.now)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from services.camera.codec import slot_after, split_packets
+from services.common import metrics
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
@@ -171,6 +172,7 @@ class LoopsFederate(Federate):
             state = LoopState(self.now, lp.tracker.report(g.BELT_HALF_WIDTH), lp.last_frame_us,
                               sc.cell.belt_speed_m_s)
             qos = self.policy.decide(state)
+            metrics.LOOP_PDP.labels(str(lp.index)).set(qos.pdp)
             if lp.qos_sent is None or lp.qos_sent[0] != qos or self.now - lp.qos_sent[1] >= 1_000_000:
                 lp.qos_sent = (qos, self.now)
                 _, ready = lp.edge_cpu.run("policy", self.now, int, 0)

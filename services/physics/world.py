@@ -23,6 +23,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from services.common import metrics
 from services.common.scenario import Scenario
 from services.physics import cell_geometry as g
 from services.physics.arm import CUP_BODY, CUP_RADIUS_M, HOME_Q, JOINTS, N_JOINTS, TCP_SITE
@@ -247,6 +248,7 @@ class World:
     def _end(self, c: CellState, slot: int, outcome: str, reason: str) -> None:
         task = c.active.pop(slot)
         task.end_us, task.outcome, task.reason = self.t_us, outcome, reason
+        metrics.TASKS.labels(outcome).inc()
         self._park(c, slot)
         c.free_slots.append(slot)
         self._changed()
