@@ -45,8 +45,8 @@ def success_figure(summary: list[dict[str, Any]], x: str, series_fields: list[st
         rows = [r for r in rows if r["success_rate"] is not None]
         xs = [r[x] for r in rows]
         ys = np.array([r["success_rate"] * 100 for r in rows])
-        lo = ys - np.array([r["success_ci_low"] * 100 for r in rows])
-        hi = np.array([r["success_ci_high"] * 100 for r in rows]) - ys
+        lo = np.maximum(0.0, ys - np.array([r["success_ci_low"] * 100 for r in rows]))
+        hi = np.maximum(0.0, np.array([r["success_ci_high"] * 100 for r in rows]) - ys)
         ax.errorbar(xs, ys, yerr=[lo, hi], marker=MARKERS[i % len(MARKERS)], capsize=3, label=name)
     for th in thresholds:
         ax.axhline(th * 100, color="grey", lw=0.8, ls=":")
@@ -54,7 +54,7 @@ def success_figure(summary: list[dict[str, Any]], x: str, series_fields: list[st
     ax.set_ylabel("task success rate (%)")
     ax.set_title("Task success vs load (95% Wilson intervals)")
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(loc="lower left")
     return fig
 
 
@@ -76,7 +76,7 @@ def traffic_figure(summary: list[dict[str, Any]], x: str, series_fields: list[st
     ax.set_ylabel("Mbit/s")
     ax.set_title("Uplink traffic injected and delivered")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     return fig
 
 
@@ -90,10 +90,15 @@ def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Fi
                 continue
             v = np.sort(lat)
             cdf = np.arange(1, v.size + 1) / v.size
+            # A run has up to millions of packets: keep a few thousand points, dense in the tail.
+            idx = np.unique(np.concatenate([np.linspace(0, v.size - 1, 2000),
+                                            v.size - np.logspace(0, np.log10(v.size), 500)]).astype(int))
+            v, cdf = v[idx], cdf[idx]
+            n = lat.size
             label = f"{name}, {x}={load}"
             ax.plot(v, cdf, color=f"C{i}", ls=styles[j % len(styles)], drawstyle="steps-post", label=label)
             # P(latency >= v): never zero, so the last packets stay on the log scale.
-            tail.plot(v, 1 - np.arange(v.size) / v.size, color=f"C{i}", ls=styles[j % len(styles)],
+            tail.plot(v, 1 - cdf + 1 / n, color=f"C{i}", ls=styles[j % len(styles)],
                       drawstyle="steps-post", label=label)
     ax.set_xscale("log")
     ax.set_xlabel("uplink IP packet latency (ms)")
@@ -106,10 +111,10 @@ def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Fi
     tail.set_ylabel("P(latency >= x)")
     for a in (ax, tail):  # 3, 5, 10 ms rather than 3x10^0
         a.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-        a.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if str(f"{v:g}")[0] in "1235" else ""))
+        a.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "25" else ""))
     tail.set_title("Tail")
     tail.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="lower right")
     return fig
 
 

@@ -41,7 +41,8 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float | None, float
     denom = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # At 0 or n successes the bound meets p exactly; rounding must not put it on the wrong side.
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def mean_ci(values: list[float]) -> tuple[float | None, float | None]:

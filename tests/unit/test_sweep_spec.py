@@ -105,6 +105,10 @@ def test_wilson_interval_and_mean_ci() -> None:
     assert high == 1.0 and 0.69 < low < 0.73  # 10/10 does not prove 100%
     low, high = wilson(0, 0)
     assert low is None and high is None
+    for n in range(1, 400):  # the bounds never cross the estimate, whatever the rounding
+        for k in (0, n):
+            low, high = wilson(k, n)
+            assert low is not None and high is not None and low <= k / n <= high
     m, half = mean_ci([1.0, 2.0, 3.0])
     assert m == 2.0 and half == pytest.approx(4.303 * 1.0 / 3 ** 0.5, rel=1e-3)
     assert mean_ci([5.0]) == (5.0, None)
