@@ -190,3 +190,24 @@ def test_flatten_and_typed_columns(tmp_path: Path) -> None:
     write_rows(tmp_path / "t.parquet", [{"a": 1, "b": "x"}, {"a": 2.5, "c": True}])
     t = pq.read_table(tmp_path / "t.parquet")
     assert str(t.schema.field("a").type) == "double" and t.column("c").to_pylist() == [None, True]
+
+
+def test_repeat_until_adds_seeds_only_where_tasks_are_short(tmp_path: Path) -> None:
+    from experiments.sweep import Sweep
+
+    s = parse_spec(spec(grid={"loops": [2, 8]}, seeds=2, repeat_until={"min_tasks": 30, "max_seeds": 5}),
+                   SCENARIOS)
+    sweep = Sweep.create(s, tmp_path, scenarios_dir=SCENARIOS)
+    points = expand(s, SCENARIOS)
+    tasks = {2: 4, 8: 16}  # per run: 2 loops give 4 tasks, 8 loops 16
+    for p in points:
+        sweep.dir.append({"key": p.key, "values": p.values, "seed": p.seed, "status": "completed",
+                          "run_id": p.key[:12], "run_dir": "runs/x", "kpis": {"tasks": tasks[p.values["loops"]]}})
+    extra = sweep._more_seeds(points)
+    # loops=2 has 8 tasks over 2 seeds and needs 30: 6 more seeds would do, 3 fit under max_seeds;
+    # loops=8 has 32 >= 30: nothing.
+    assert [(p.values["loops"], p.seed) for p in extra] == [(2, 3), (2, 4), (2, 5)]
+    for p in extra:
+        sweep.dir.append({"key": p.key, "values": p.values, "seed": p.seed, "status": "completed",
+                          "run_id": p.key[:12], "run_dir": "runs/x", "kpis": {"tasks": 4}})
+    assert sweep._more_seeds(points) == [], "max_seeds reached (seeds added earlier count, also on resume)"
