@@ -1,6 +1,7 @@
 # cosim5g: `make help` lists the targets.
 SHELL := /bin/bash
-PYTHON ?= python3
+# Python 3.11: python3.11 where it exists (python3 may be another version), else python3.
+PYTHON ?= $(shell command -v python3.11 >/dev/null 2>&1 && echo python3.11 || echo python3)
 VENV ?= .venv
 BIN := $(VENV)/bin
 SCENARIO ?= co_design
@@ -18,18 +19,22 @@ PLATFORM_UID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || echo $$u)
 PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
-.PHONY: help install run smoke test test-unit test-integration lint bench bench-docker images up down \
-	reproduce reproduce-quick \
+.PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
+	reproduce reproduce-quick soak chaos \
 	calibrate measure-frames train-perception install-train clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
 
 $(BIN)/cosim5g: pyproject.toml
+	PYTHON=$(PYTHON) bash images/host_setup.sh python egl
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray]'
 	@touch $@
+
+setup: ## check the host (Python 3.11 venv, Docker + compose, EGL/Mesa); as root install what is missing, else print the command
+	PYTHON=$(PYTHON) bash images/host_setup.sh
 
 install: $(BIN)/cosim5g ## create .venv and install the project with its test tools
 
@@ -56,6 +61,12 @@ test-integration: $(BIN)/cosim5g ## runs over real zenoh and real processes
 bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
 
+soak: $(BIN)/cosim5g ## 100 smoke runs in one coordinator (+ DOCKER_RUNS in containers): leftovers, RSS, fds (results/bench/)
+	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),0)
+
+chaos: $(BIN)/cosim5g ## 30 runs with a random fault (kill/stop a federate, kill the coordinator, OOM): end states, leftovers
+	$(BIN)/python -m benchmarks.reliability chaos --runs $(or $(RUNS),30) --runtime $(or $(RUNTIME),process)
+
 JOBS ?= 1
 reproduce: $(BIN)/cosim5g ## the study's sweep (loops 2..36 x none/heuristic x 3 seeds, 60 s points): capacity, Fig. 4-6, report
 	$(BIN)/cosim5g sweep configs/sweeps/reproduce.yaml --jobs $(JOBS)
@@ -63,22 +74,25 @@ reproduce: $(BIN)/cosim5g ## the study's sweep (loops 2..36 x none/heuristic x 3
 reproduce-quick: $(BIN)/cosim5g ## the same, short: loops 4..36 step 4, one seed, 15 s points (results/sweeps/)
 	$(BIN)/cosim5g sweep configs/sweeps/quick.yaml --jobs $(JOBS)
 
-images: $(BIN)/cosim5g ## build the runtime and Prometheus images without a registry (see docs/docker.md)
+images: setup $(BIN)/cosim5g ## build the runtime and Prometheus images without a registry (see docs/docker.md)
 	PYTHON=$(PYTHON) bash images/build.sh
 
+TOKEN_FILE := $(CURDIR)/results/auth/api-token
+TOKEN_AT = $$([ -n "$$COSIM5G_TOKEN" ] && echo 'the value of COSIM5G_TOKEN' || echo '$(TOKEN_FILE) (mode 0600)')
 up: images ## start the platform (coordinator API + Prometheus) and run SCENARIO in containers
 	mkdir -p results/runs
 	chown -R $(PLATFORM_UID):$(PLATFORM_GID) results
 	$(COMPOSE_ENV) $(COMPOSE) up -d
+	@echo "API token: $(TOKEN_AT); the coordinator writes the file at its first start, cosim5g submit reads it"
 	$(BIN)/cosim5g submit $(SCENARIO) --set runtime=docker --follow --api $(API)
-	@echo "platform still up: API $(API), Prometheus http://127.0.0.1:9090; 'make down' removes it"
+	@echo "platform still up: API $(API) (bearer token: $(TOKEN_AT); a browser: $(API)/login?token=<token>), Prometheus http://127.0.0.1:9090; 'make down' removes it"
 
 down: ## stop the platform and remove its containers, networks and volumes (and leftovers of runs)
 	-$(COMPOSE_ENV) $(COMPOSE) down -v --remove-orphans
 	-$(BIN)/python -c "from coordinator.runtime_docker import docker_client, reap_dead_runs; reap_dead_runs(docker_client())"
 
-calibrate: images ## real workloads under cpus 1.0/0.5/0.25: wall and cpu-mode vs ideal (results/bench/)
-	$(BIN)/python -m coordinator.calibrate
+calibrate: images ## real workloads at cpus 1/0.5/0.25, process + docker: cpu-mode and wall vs ideal, 95% CIs (results/bench/)
+	$(BIN)/python -m coordinator.calibrate --runtime both --rounds $(or $(ROUNDS),6) --jobs $(or $(CAL_JOBS),6)
 
 bench-docker: images ## make bench plus the smoke run in containers: docker/process real-time factor
 	$(BIN)/python -m benchmarks.platform_bench --docker

@@ -3,34 +3,94 @@
 Runs execute one at a time on a worker thread (a run already uses every core of a small host).
 Request bodies are validated by the same scenario schema as the CLI, and invalid ones get a 422
 listing each field and what is allowed.
+
+Every route but ``/healthz`` needs the bearer token (``coordinator.auth``): the check is a
+dependency of the whole app, so routes added later are covered without a word. A browser gets
+a cookie from ``/login?token=...`` instead. Scenario and sweep names are looked up in the
+shipped lists, never used as paths; ``ApiLimits`` bounds what one request may ask for (422
+naming the limit) and how much work may wait (429).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import queue
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Mapping
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import FastAPI, HTTPException
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, RedirectResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from coordinator.api_sweeps import add_sweep_routes
+from coordinator.auth import token_matches
 from coordinator.conductor import Progress
-from coordinator.run import execute_run, new_run_id
+from coordinator.run import RunResult, execute_run, new_run_id
 from coordinator.store import RunStore
+from experiments.executors import Executor
 from experiments.service import SweepService
-from services.common.scenario import ScenarioError, load_scenario, parse_scenario
+from experiments.spec import SweepError, SweepSpec, base_path, overrides
+from services.common.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 
 RUNS = Counter("cosim_coordinator_runs_total", "Runs finished, by final state", ["status"])
 ACTIVE = Gauge("cosim_coordinator_runs_active", "Runs pending or running")
 SIM_TIME = Gauge("cosim_coordinator_run_sim_time_seconds", "Simulated time reached by the current run")
 RTF = Gauge("cosim_coordinator_run_real_time_factor", "Real-time factor of the current run")
+REFUSED = Counter("cosim_coordinator_requests_refused_total", "Requests refused by a limit or for the token",
+                  ["reason"])
+
+# Routes anyone may call: liveness only (the compose healthcheck and load balancers know no token).
+PUBLIC_PATHS = frozenset({"/healthz"})
+COOKIE = "cosim5g_token"
+BEARER = HTTPBearer(auto_error=False, scheme_name="token",
+                    description="the coordinator's API token: results/auth/api-token on its host, or COSIM5G_TOKEN")
+
+
+class ApiLimits(BaseModel):
+    """What one request may ask of this coordinator. Each limit is set by a ``cosim5g serve``
+    flag or, failing that, by its environment variable (``COSIM5G_`` + the name in capitals)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_duration_s: float = Field(default=3600.0, gt=0, description="longest simulated duration_s of a run or "
+                                  "sweep point, s")
+    max_run_timeout_s: float = Field(default=21600.0, gt=0, description="largest watchdog.run_timeout_s (wall "
+                                     "clock) of a run or sweep point, s")
+    max_sweep_points: int = Field(default=1000, ge=1, description="most points (grid combinations x seeds, "
+                                  "repeat_until's extra seeds included) in one sweep")
+    max_queued: int = Field(default=32, ge=1, description="most runs and sweeps pending or running at once")
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None, **given: Any) -> ApiLimits:
+        """Limits from ``given`` (None = not given), else ``COSIM5G_<NAME>``, else the default;
+        ValueError naming the flag and variable of a bad value."""
+        environ = os.environ if environ is None else environ
+        values: dict[str, Any] = {}
+        for name in cls.model_fields:
+            if given.get(name) is not None:
+                values[name] = given[name]
+            elif (env := environ.get(f"COSIM5G_{name.upper()}")) is not None:
+                values[name] = env
+        try:
+            return cls(**values)
+        except ValidationError as exc:
+            raise ValueError("; ".join(
+                f"{limit_source(str(e['loc'][0]))}: {e['msg']} (given {e['input']!r})" for e in exc.errors())) from None
+
+
+def limit_source(name: str) -> str:
+    """How a limit is set, for messages: ``max_queued (--max-queued, COSIM5G_MAX_QUEUED)``."""
+    return f"{name} (--{name.replace('_', '-')}, COSIM5G_{name.upper()})"
+
+
+class TooMuchWork(Exception):
+    """The queue is full: answered with 429."""
 
 
 class RunRequest(BaseModel):
@@ -45,9 +105,14 @@ class RunRequest(BaseModel):
 class Coordinator:
     """Owns the store, the run queue and the worker thread."""
 
-    def __init__(self, results_root: Path, db_path: Path, scenarios_dir: Path) -> None:
+    def __init__(self, results_root: Path, db_path: Path, scenarios_dir: Path,
+                 limits: ApiLimits | None = None, execute: Callable[..., RunResult] = execute_run) -> None:
         self.results_root = results_root
+        self.execute = execute
         self.scenarios_dir = scenarios_dir
+        self.limits = limits or ApiLimits()
+        self.admit = threading.Lock()  # the queue check and the enqueue, as one step
+        self.queued_elsewhere: Callable[[], int] = lambda: 0  # sweeps pending or running (set by create_app)
         self.store = RunStore(db_path)
         self.store.reap_orphans()
         self.queue: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
@@ -56,20 +121,35 @@ class Coordinator:
         self.worker = threading.Thread(target=self._work, daemon=True, name="runs")
         self.worker.start()
 
+    def queued(self) -> int:
+        """Runs and sweeps pending or running."""
+        return len(self.cancels) + int(self.queued_elsewhere())
+
+    def check_queue(self) -> None:
+        n = self.queued()
+        if n >= self.limits.max_queued:
+            raise TooMuchWork(f"{n} runs and sweeps are pending or running, the most this coordinator queues: "
+                              f"{limit_source('max_queued')} = {self.limits.max_queued}; retry when one has ended")
+
     def submit(self, req: RunRequest) -> dict[str, Any]:
         if req.scenario is not None:
-            path = self.scenarios_dir / f"{req.scenario}.yaml"
-            if not path.is_file():
-                known = sorted(p.stem for p in self.scenarios_dir.glob("*.yaml"))
+            known = sorted(p.stem for p in self.scenarios_dir.glob("*.yaml"))
+            if req.scenario not in known:  # checked against the list: a name never becomes a path
                 raise ScenarioError([("scenario", f"{req.scenario!r} is not one of {known}")])
-            sc = load_scenario(path, [*(f"{k}={v}" for k, v in _flatten(req.config or {})), *req.overrides])
+            sc = load_scenario(self.scenarios_dir / f"{req.scenario}.yaml",
+                               [*(f"{k}={v}" for k, v in _flatten(req.config or {})), *req.overrides])
         else:
             sc = parse_scenario(req.config or {}, req.overrides)
-        run_id = new_run_id(sc)
-        self.store.add(run_id, sc.name, sc.model_dump(mode="json"), str(self.results_root / run_id))
-        self.cancels[run_id] = threading.Event()
-        ACTIVE.inc()
-        self.queue.put((run_id, sc))
+        errors = scenario_limit_errors(sc, self.limits)
+        if errors:
+            raise ScenarioError(errors)
+        with self.admit:
+            self.check_queue()
+            run_id = new_run_id(sc)
+            self.store.add(run_id, sc.name, sc.model_dump(mode="json"), str(self.results_root / run_id))
+            self.cancels[run_id] = threading.Event()
+            ACTIVE.inc()
+            self.queue.put((run_id, sc))
         return {"run_id": run_id, "status": "pending"}
 
     def cancel(self, run_id: str) -> bool:
@@ -100,7 +180,7 @@ class Coordinator:
                     self.store.set_progress(run_id, p.t_us / 1e6, rtf)
 
                 with self.busy:
-                    result = execute_run(sc, self.results_root, on_progress=progress, cancel=cancel, run_id=run_id)
+                    result = self.execute(sc, self.results_root, on_progress=progress, cancel=cancel, run_id=run_id)
                 self.store.finish(run_id, result.status, result.reason, result.kpis)
                 RUNS.labels(result.status).inc()
             except Exception as exc:  # the worker must survive a broken run
@@ -118,6 +198,74 @@ class Coordinator:
         self.store.close()
 
 
+def scenario_limit_errors(sc: Scenario, limits: ApiLimits) -> list[tuple[str, str]]:
+    """(field, message) for each field of ``sc`` beyond this coordinator's limits."""
+    errors = []
+    if sc.duration_s > limits.max_duration_s:
+        errors.append(("duration_s", f"{sc.duration_s:g} s is more than this coordinator allows: "
+                                     f"{limit_source('max_duration_s')} = {limits.max_duration_s:g} s"))
+    if sc.watchdog.run_timeout_s > limits.max_run_timeout_s:
+        errors.append(("watchdog.run_timeout_s", f"{sc.watchdog.run_timeout_s:g} s is more than this coordinator "
+                       f"allows: {limit_source('max_run_timeout_s')} = {limits.max_run_timeout_s:g} s"))
+    return errors
+
+
+def sweep_limit_errors(spec: SweepSpec, scenarios_dir: Path, limits: ApiLimits) -> list[tuple[str, str]]:
+    """(field, message) for a sweep with too many points, or a point beyond the run limits."""
+    seeds = len(spec.seed_list())
+    if spec.repeat_until is not None:
+        seeds = max(seeds, spec.repeat_until.max_seeds)
+    combos = 1
+    for values in spec.grid_values().values():
+        combos *= len(values)
+    errors = []
+    if combos * seeds > limits.max_sweep_points:
+        errors.append(("grid", f"{combos} grid combinations x {seeds} seeds = {combos * seeds} points, more than "
+                               f"this coordinator runs in one sweep: {limit_source('max_sweep_points')} = "
+                               f"{limits.max_sweep_points}"))
+    # Only duration_s and watchdog.run_timeout_s matter here, and each is either fixed (base and
+    # set) or one grid axis: checking the base and each value of that axis covers every point.
+    base = load_scenario(base_path(spec.base, scenarios_dir, allow_paths=False), overrides(spec.set))
+    grid = spec.grid_values()
+    for path, field, limit in (("duration_s", "max_duration_s", limits.max_duration_s),
+                               ("watchdog.run_timeout_s", "max_run_timeout_s", limits.max_run_timeout_s)):
+        fixed = base.duration_s if path == "duration_s" else base.watchdog.run_timeout_s
+        for where, value in ([(f"grid.{path}", v) for v in grid[path]] if path in grid
+                             else [(f"set.{path}" if path in spec.set else f"base.{path}", fixed)]):
+            if float(value) > limit:
+                errors.append((where, f"{float(value):g} s is more than this coordinator allows: "
+                                      f"{limit_source(field)} = {limit:g} s"))
+                break
+    return errors
+
+
+def document_refusals(schema: dict[str, Any]) -> dict[str, Any]:
+    """The OpenAPI schema as the app answers: /healthz needs no token (the app-wide dependency
+    marks every route), every other operation may answer 401, the two that queue work 429, and a
+    422 lists either the framework's items (loc, msg, type) or the scenario and sweep checks'
+    (field, message)."""
+    detail = {"type": "object", "required": ["detail"], "properties": {"detail": {"type": "string"}}}
+    for path, ops in schema["paths"].items():
+        for method, op in ops.items():
+            if path in PUBLIC_PATHS:
+                op.pop("security", None)
+                continue
+            op["responses"]["401"] = {"description": "missing or wrong API token",
+                                      "content": {"application/json": {"schema": detail}}}
+            if method == "post" and path in ("/runs", "/sweeps"):
+                op["responses"]["429"] = {"description": "too much work queued (the limit max_queued)",
+                                          "content": {"application/json": {"schema": detail}}}
+    comps = schema.setdefault("components", {}).setdefault("schemas", {})
+    comps["FieldError"] = {
+        "title": "FieldError", "type": "object", "required": ["field", "message"],
+        "properties": {"field": {"type": "string", "description": "the field, dotted (e.g. camera.fps)"},
+                       "message": {"type": "string", "description": "what is wrong, and what is allowed"}}}
+    if "HTTPValidationError" in comps:
+        comps["HTTPValidationError"]["properties"]["detail"]["items"] = {
+            "anyOf": [{"$ref": "#/components/schemas/ValidationError"}, {"$ref": "#/components/schemas/FieldError"}]}
+    return schema
+
+
 def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
     out: list[tuple[str, Any]] = []
     for k, v in d.items():
@@ -130,12 +278,22 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
 
 
 def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_root: Path | None = None,
-               sweeps_dir: Path | None = None, sweep_jobs: int = 1) -> FastAPI:
-    coord = Coordinator(results_root, db_path, scenarios_dir)
+               sweeps_dir: Path | None = None, sweep_jobs: int = 1, *, token: str,
+               limits: ApiLimits | None = None,
+               token_hint: str = "the coordinator's COSIM5G_TOKEN or the content of its token file",
+               execute: Callable[..., RunResult] = execute_run,
+               make_sweep_executor: Callable[[], Executor] | None = None) -> FastAPI:
+    """The app; ``token`` is the bearer token every route but /healthz needs (``token_hint``
+    tells a refused client where to find it). ``execute`` runs one run and
+    ``make_sweep_executor`` makes a sweep's executor (defaults: the real ones)."""
+    coord = Coordinator(results_root, db_path, scenarios_dir, limits, execute)
+    limits = coord.limits
     sweeps_root = sweeps_root or results_root.parent / "sweeps"
     sweeps_dir = sweeps_dir or scenarios_dir.parent / "sweeps"
     # Single runs and sweep points share the host: one of them at a time.
-    sweeps = SweepService(db_path, sweeps_root, scenarios_dir, jobs=sweep_jobs, busy=coord.busy)
+    sweeps = SweepService(db_path, sweeps_root, scenarios_dir, jobs=sweep_jobs, busy=coord.busy,
+                          make_executor=make_sweep_executor)
+    coord.queued_elsewhere = sweeps.queued
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -143,15 +301,75 @@ def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_ro
         sweeps.close()
         coord.close()
 
-    app = FastAPI(title="cosim5g coordinator", version="0.1.0", lifespan=lifespan)
+    refused = (f"missing or wrong API token: send the header 'Authorization: Bearer <token>'; the token is "
+               f"{token_hint}")
+
+    def require_token(request: Request,
+                      credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]) -> None:
+        if request.url.path in PUBLIC_PATHS:
+            return
+        given = credentials.credentials if credentials is not None else request.cookies.get(COOKIE)
+        if request.url.path == "/login" and given is None:
+            given = request.query_params.get("token")
+        if given is None or not token_matches(given, token):
+            REFUSED.labels("token").inc()
+            raise HTTPException(401, refused, headers={"WWW-Authenticate": "Bearer"})
+
+    # The framework's own /openapi.json and /docs would bypass app dependencies: they are added
+    # below as ordinary (protected) routes instead.
+    app = FastAPI(title="cosim5g coordinator", version="0.1.0", lifespan=lifespan,
+                  dependencies=[Depends(require_token)], openapi_url=None, docs_url=None, redoc_url=None)
     app.state.coordinator = coord
     app.state.sweeps = sweeps
-    add_sweep_routes(app, sweeps, sweeps_dir, scenarios_dir,
+    app.state.limits = limits
+
+    def check_spec(spec: SweepSpec, service: SweepService) -> None:
+        errors = sweep_limit_errors(spec, scenarios_dir, limits)
+        if errors:
+            raise SweepError(errors)
+        coord.check_queue()
+
+    add_sweep_routes(app, sweeps, sweeps_dir, scenarios_dir, check_spec=check_spec,
                      recent_runs=lambda: coord.store.list(limit=20))
 
     @app.exception_handler(ScenarioError)
     async def invalid_scenario(_: Any, exc: ScenarioError) -> JSONResponse:
         return JSONResponse(status_code=422, content={"detail": [{"field": f, "message": m} for f, m in exc.errors]})
+
+    @app.exception_handler(TooMuchWork)
+    async def too_much_work(_: Any, exc: TooMuchWork) -> JSONResponse:
+        REFUSED.labels("max_queued").inc()
+        return JSONResponse(status_code=429, content={"detail": str(exc)}, headers={"Retry-After": "60"})
+
+    def openapi_schema() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = document_refusals(FastAPI.openapi(app))
+        return app.openapi_schema
+
+    app.openapi = openapi_schema  # type: ignore[method-assign]
+
+    @app.get("/openapi.json", include_in_schema=False)
+    def openapi() -> JSONResponse:
+        return JSONResponse(app.openapi())
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="cosim5g coordinator")
+
+    @app.get("/login", status_code=303, response_class=RedirectResponse,
+             responses={303: {"description": "token accepted: a cookie is set, on to `next`"}})
+    def login(token_: Annotated[str, Query(alias="token", description="the API token")],
+              next_: Annotated[str, Query(alias="next", description="a page of this API to go to")] = "/",
+              ) -> RedirectResponse:
+        """For a browser: the results pages then work with a cookie instead of a header."""
+        if not token_matches(token_, token):  # the check above may have passed on a header or cookie
+            REFUSED.labels("token").inc()
+            raise HTTPException(401, refused, headers={"WWW-Authenticate": "Bearer"})
+        # Only a path of this site: "//host" or a URL would make the login an open redirect.
+        local = next_.startswith("/") and not next_.startswith("//") and "\\" not in next_
+        resp = RedirectResponse(next_ if local else "/", status_code=303)
+        resp.set_cookie(COOKIE, token_, httponly=True, samesite="strict", path="/")
+        return resp
 
     @app.get("/healthz")
     def healthz() -> dict[str, str]:

@@ -78,6 +78,10 @@ def add_sweep_routes(app: FastAPI, service: SweepService, sweeps_dir: Path, scen
                                  for s in active if (d := service.describe(s["sweep_id"])) is not None))
 
     service.on_point_done = lambda state: SWEEP_POINTS.labels(state).inc()
+    for state in ("completed", "failed", "timed_out"):  # every panel has its series from the start
+        SWEEP_POINTS.labels(state)
+    SWEEPS_ACTIVE.set(0)
+    POINTS_REMAINING.set(0)
 
     @app.get("/sweeps/specs")
     def sweep_specs() -> list[str]:

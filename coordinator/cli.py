@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import signal
 import sys
@@ -229,17 +230,45 @@ def cmd_netsim(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from coordinator.api import create_app
+    from coordinator.api import ApiLimits, create_app
+    from coordinator.auth import (
+        TOKEN_ENV,
+        TOKEN_FILE_ENV,
+        TokenError,
+        listen_sockets,
+        server_token,
+        token_file,
+    )
 
+    try:
+        limits = ApiLimits.from_env(**{name: getattr(args, name) for name in ApiLimits.model_fields})
+    except ValueError as exc:
+        print(f"cosim5g serve: {exc}", file=sys.stderr)
+        return 2
+    path = token_file(args.token_file).absolute()
+    try:
+        # A file named on purpose also gets a COSIM5G_TOKEN, for whoever reads it (Prometheus).
+        token = server_token(path, keep_env_token=bool(args.token_file or os.environ.get(TOKEN_FILE_ENV)))
+        socks = listen_sockets(args.host or ["127.0.0.1"], args.port)
+    except (TokenError, OSError) as exc:
+        print(f"cosim5g serve: {exc}", file=sys.stderr)
+        return 2
+    hint = (f"the value of {TOKEN_ENV} where the coordinator runs" if os.environ.get(TOKEN_ENV)
+            else f"in {path} on the coordinator's host (readable by its owner only)")
     app = create_app(Path(args.results), Path(args.db), Path(args.scenarios), Path(args.sweeps),
-                     Path(args.sweep_specs), args.sweep_jobs)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+                     Path(args.sweep_specs), args.sweep_jobs, token=token, limits=limits, token_hint=hint)
+    where = ", ".join(f"http://{s.getsockname()[0]}:{s.getsockname()[1]}" for s in socks)
+    print(f"cosim5g serve: API on {where}; token {hint}; limits {limits.model_dump()}", file=sys.stderr)
+    uvicorn.Server(uvicorn.Config(app, log_level="info")).run(sockets=socks)
     return 0
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
+    from coordinator.auth import TOKEN_FILE_ENV
     from coordinator.client import ApiError, call, follow, wait_healthy
 
+    if args.token_file:  # every call of this process, the sweep path's too, reads the token there
+        os.environ[TOKEN_FILE_ENV] = args.token_file
     if args.sweep:
         return _submit_sweep(args)
     if not args.scenario:
@@ -305,8 +334,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--progress-file", help="write the progress as JSON to this file while the run goes")
     r.set_defaults(fn=cmd_run)
     s = sub.add_parser("serve", help="REST API: start runs, follow them, /metrics")
-    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--host", action="append", help="address or name to listen on (repeatable; default "
+                   "127.0.0.1); names are resolved once, at start")
     s.add_argument("--port", type=int, default=8080)
+    s.add_argument("--token-file", help="the API token's file, created (mode 0600) if missing; default "
+                   "$COSIM5G_TOKEN_FILE or results/auth/api-token. $COSIM5G_TOKEN overrides it (and is "
+                   "written to it when the file is named by this flag or $COSIM5G_TOKEN_FILE)")
+    s.add_argument("--max-duration-s", type=float, help="longest duration_s of a run or sweep point "
+                   "(default $COSIM5G_MAX_DURATION_S or 3600)")
+    s.add_argument("--max-run-timeout-s", type=float, help="largest watchdog.run_timeout_s "
+                   "(default $COSIM5G_MAX_RUN_TIMEOUT_S or 21600)")
+    s.add_argument("--max-sweep-points", type=int, help="most points in one sweep "
+                   "(default $COSIM5G_MAX_SWEEP_POINTS or 1000)")
+    s.add_argument("--max-queued", type=int, help="most runs and sweeps pending or running "
+                   "(default $COSIM5G_MAX_QUEUED or 32)")
     s.add_argument("--results", default=str(DEFAULT_RESULTS))
     s.add_argument("--db", default="results/cosim5g.db")
     s.add_argument("--scenarios", default="configs/scenarios")
@@ -318,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("scenario", nargs="?", help="name of a scenario in the coordinator's configs/scenarios/")
     c.add_argument("--sweep", metavar="SPEC", help="start a sweep instead: a name in configs/sweeps/")
     c.add_argument("--api", default="http://127.0.0.1:8080")
+    c.add_argument("--token-file", help="the coordinator's API token file (default $COSIM5G_TOKEN_FILE or "
+                   "results/auth/api-token); $COSIM5G_TOKEN overrides it")
     c.add_argument("--set", action="append", metavar="FIELD=VALUE")
     c.add_argument("--follow", action="store_true", help="wait for the end and print the KPIs (or the capacity)")
     c.add_argument("--wait-s", type=float, default=120.0, help="how long to wait for the API")

@@ -158,12 +158,11 @@ def field_exists(path: str) -> str | None:
 
 def base_path(base: str, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> Path:
     """The base scenario's file: a shipped name, or (from the CLI only) a path."""
-    named = scenarios_dir / f"{base}.yaml"
-    if named.is_file() and "/" not in base:
-        return named
+    known = sorted(p.stem for p in scenarios_dir.glob("*.yaml"))
+    if base in known:  # a name from the list, never a path built from the request
+        return scenarios_dir / f"{base}.yaml"
     if allow_paths and Path(base).is_file():
         return Path(base)
-    known = sorted(p.stem for p in scenarios_dir.glob("*.yaml"))
     raise SweepError([("base", f"{base!r} is not a shipped scenario ({', '.join(known)})"
                                + (" nor a file" if allow_paths else ""))])
 

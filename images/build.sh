@@ -4,7 +4,8 @@
 #   1. base image cosim5g/base:bookworm: local cache, else `docker pull debian:bookworm-slim`,
 #      else debootstrap (minbase) + `docker import`, the rootfs tarball cached for the next build;
 #   2. wheelhouse on the host: the runtime dependencies of pyproject.toml ([project].dependencies
-#      plus the `api` extra; never torch) downloaded with pip, plus a wheel of the project;
+#      plus the `api` and `plots` extras -- the coordinator draws sweeps' figures; never torch)
+#      downloaded with pip, plus a wheel of the project;
 #   3. cosim5g/runtime:latest (every federate and the coordinator) and cosim5g/prometheus:latest.
 #
 # Idempotent: a second run reuses the base image, the wheelhouse (until pyproject.toml changes)
@@ -67,9 +68,9 @@ bootstrap_base() {
   if [[ -s "$tarball" ]]; then
     log "base: reusing cached debootstrap rootfs $tarball"
   else
-    command -v debootstrap >/dev/null \
-      || die "no base image, no registry and no debootstrap: apt-get install debootstrap"
-    [[ "$(id -u)" == 0 ]] || die "debootstrap needs root (run images/build.sh as root once)"
+    [[ "$(id -u)" == 0 ]] || die "no base image is cached and no registry answers: the base is bootstrapped with debootstrap, which needs root; run once: sudo PYTHON=$PYTHON bash images/build.sh"
+    # Installs debootstrap when missing (as root, with apt), or says how and stops.
+    bash "$IMAGES_DIR/host_setup.sh" debootstrap || die "debootstrap is needed to build the base image (see above)"
     local rootfs="$CACHE/images/rootfs.tmp"
     rm -rf "$rootfs"
     local mirror=()
@@ -123,7 +124,7 @@ fi
 WH="$CACHE/wheelhouse"
 REQS="$WH/requirements.txt"
 "$PYTHON" - "$REPO/pyproject.toml" >"$REQS.tmp" <<'EOF'
-"""Print the runtime requirements: [project].dependencies + the api extra, without torch."""
+"""Print the runtime requirements: [project].dependencies + the api and plots extras, no torch."""
 import re
 import sys
 import tomllib
@@ -131,7 +132,8 @@ import tomllib
 with open(sys.argv[1], "rb") as f:
     project = tomllib.load(f)["project"]
 reqs = list(project.get("dependencies", []))
-reqs += project.get("optional-dependencies", {}).get("api", [])
+for extra in ("api", "plots"):
+    reqs += project.get("optional-dependencies", {}).get(extra, [])
 for r in sorted(set(reqs)):
     name = re.split(r"[\s<>=!~;\[]", r, maxsplit=1)[0].lower()
     if name.startswith("torch"):
@@ -178,7 +180,12 @@ stage="$WH/src.stage"
 rm -rf "$stage" "$WH/project.new"
 mkdir -p "$stage" "$WH/project.new"
 cp "$REPO/pyproject.toml" "$stage/"
-for pkg in coordinator services netsim; do
+# The packages pyproject.toml ships ([tool.setuptools.packages.find] include = ["coordinator*", ...]).
+mapfile -t packages < <("$PYTHON" -c '
+import sys, tomllib
+find = tomllib.load(open(sys.argv[1], "rb"))["tool"]["setuptools"]["packages"]["find"]
+print("\n".join(sorted({p.split(".")[0].rstrip("*") for p in find["include"]})))' "$REPO/pyproject.toml")
+for pkg in "${packages[@]}"; do
   [[ -d "$REPO/$pkg" ]] && cp -r "$REPO/$pkg" "$stage/"
 done
 find "$stage" \( -name __pycache__ -o -name '*.pyc' \) -prune -exec rm -rf {} +

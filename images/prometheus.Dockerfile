@@ -18,6 +18,9 @@ RUN printf '%s\n' 'path-exclude=/usr/share/doc/*' 'path-include=/usr/share/doc/*
  && apt-get install -y --no-install-recommends prometheus wget ca-certificates \
  && rm -rf /var/lib/apt/lists/* /var/cache/apt/archives/*.deb \
  && install -d -o prometheus -g prometheus /prometheus
+# docker-compose.yml runs Prometheus as the owner of the coordinator's API token file (mode 0600),
+# any uid: the data folder (a fresh volume copies these permissions) takes whoever runs it.
+RUN chmod 1777 /prometheus
 USER prometheus
 WORKDIR /prometheus
 EXPOSE 9090

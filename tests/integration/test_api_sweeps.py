@@ -129,7 +129,9 @@ def test_results_page_in_a_real_browser(finished_sweep: Any, tmp_path: Path) -> 
     if browser is None:
         pytest.skip("no chromium (Debian: apt-get install chromium)")
     server, s = finished_sweep
-    url = f"{server.base}/sweeps/{s['sweep_id']}"
+    # A browser has no bearer header: /login turns the token into a cookie and comes back here.
+    token = os.environ["COSIM5G_TOKEN"]
+    url = f"{server.base}/login?token={token}&next=/sweeps/{s['sweep_id']}"
     shot = tmp_path / "page.png"
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1200,2600",
              f"--user-data-dir={tmp_path / 'profile'}"]
@@ -146,8 +148,8 @@ def test_results_page_in_a_real_browser(finished_sweep: Any, tmp_path: Path) -> 
 
     pixels = np.asarray(Image.open(shot).convert("L"))
     assert (pixels < 128).mean() > 0.01, "the page has text and plots"
-    index = subprocess.run([browser, *flags, "--dump-dom", server.base + "/"], capture_output=True, text=True,
-                           timeout=120).stdout
+    index = subprocess.run([browser, *flags, "--dump-dom", f"{server.base}/login?token={token}&next=/"],
+                           capture_output=True, text=True, timeout=120).stdout
     assert s["sweep_id"] in index
 
 

@@ -1,0 +1,322 @@
+"""The API's access rules: the bearer token on every route but /healthz, names that never become
+paths, and the limits on what a request may ask for (each refusal naming its limit).
+
+The real app is served over HTTP by uvicorn on a thread. Runs never simulate here: the app gets a
+stand-in ``execute`` that holds each run until it is cancelled, so that queued work stays queued
+while the limits are probed."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import re
+import stat
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+import pytest
+import uvicorn
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
+
+from coordinator.api import ApiLimits, create_app
+from coordinator.auth import TokenError, listen_sockets, server_token, token_matches
+from coordinator.run import RunResult
+from experiments.executors import PointTask
+from services.common.scenario import Scenario
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).parents[2]
+TOKEN = "test-token-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class HeldRuns:
+    """Stands in for ``execute_run``: a run is 'running' until it is cancelled."""
+
+    def __init__(self) -> None:
+        self.started: list[str] = []
+
+    def __call__(self, sc: Scenario, results_root: Path, on_progress: Any = None,
+                 cancel: threading.Event | None = None, run_id: str | None = None) -> RunResult:
+        assert cancel is not None and run_id is not None
+        self.started.append(run_id)
+        cancel.wait(60)
+        return RunResult(run_id, "cancelled", results_root / run_id, {}, "cancelled by the test")
+
+
+class NoPoints:
+    """A sweep executor that runs nothing."""
+
+    name = "none"
+
+    def run(self, tasks: list[PointTask], on_start: Any, on_done: Any, cancel: threading.Event) -> None:
+        del tasks, on_start, on_done, cancel
+
+
+def make_app(tmp_path: Path, **limits: Any) -> tuple[FastAPI, HeldRuns]:
+    held = HeldRuns()
+    app = create_app(tmp_path / "runs", tmp_path / "store.db", ROOT / "configs" / "scenarios",
+                     tmp_path / "sweeps", ROOT / "configs" / "sweeps", token=TOKEN,
+                     limits=ApiLimits(**limits), execute=held, make_sweep_executor=NoPoints)
+    return app, held
+
+
+class Reply:
+    def __init__(self, status: int, headers: http.client.HTTPMessage, body: bytes) -> None:
+        self.status_code, self.headers, self.body = status, headers, body
+        self.text = body.decode(errors="replace")
+
+    def json(self) -> Any:
+        return json.loads(self.body)
+
+
+class Client:
+    """Plain HTTP to a served app: no redirect is followed, the cookie is kept like a browser's."""
+
+    def __init__(self, app: FastAPI, port: int) -> None:
+        self.app, self.port = app, port
+        self.cookie: str | None = None
+
+    def request(self, method: str, path: str, headers: dict[str, str] | None = None, json_body: Any = None,
+                params: dict[str, str] | None = None) -> Reply:
+        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=30)
+        hdrs = dict(headers or {})
+        body = None
+        if json_body is not None:
+            body = json.dumps(json_body).encode()
+            hdrs["content-type"] = "application/json"
+        if self.cookie:
+            hdrs["cookie"] = self.cookie
+        try:
+            conn.request(method, path + (f"?{urlencode(params)}" if params else ""), body=body, headers=hdrs)
+            resp = conn.getresponse()
+            reply = Reply(resp.status, resp.headers, resp.read())
+        finally:
+            conn.close()
+        if (set_cookie := reply.headers.get("set-cookie")) is not None:
+            self.cookie = set_cookie.split(";", 1)[0]
+        return reply
+
+    def get(self, path: str, **kw: Any) -> Reply:
+        return self.request("GET", path, **kw)
+
+    def post(self, path: str, json: Any = None, **kw: Any) -> Reply:
+        return self.request("POST", path, json_body=json, **kw)
+
+
+@contextmanager
+def serving(app: FastAPI) -> Iterator[Client]:
+    """The app behind uvicorn on a loopback port, lifespan included."""
+    [sock] = listen_sockets(["127.0.0.1"], 0)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.05)
+    try:
+        yield Client(app, sock.getsockname()[1])
+    finally:
+        server.should_exit = True
+        thread.join(60)
+        sock.close()
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[Client]:
+    app, _ = make_app(tmp_path)
+    with serving(app) as c:
+        yield c
+
+
+def concrete(path: str) -> str:
+    """A route's path with every {parameter} filled in."""
+    return re.sub(r"\{[^}]+\}", "x", path)
+
+
+def test_every_route_but_healthz_wants_the_token(client: Client) -> None:
+    app = client.app
+    assert isinstance(app, FastAPI)
+    checked = 0
+    for route in app.routes:  # whatever routes exist, now or added later
+        path = getattr(route, "path", None)
+        methods = getattr(route, "methods", None) or {"GET"}
+        if path is None:
+            continue
+        for method in sorted(methods - {"HEAD", "OPTIONS"}):
+            url = concrete(path)
+            for headers in ({}, {"Authorization": "Bearer wrong-token-0123456789"},
+                            {"Authorization": f"Basic {TOKEN}"}):
+                r = client.request(method, url, headers=headers)
+                if path == "/healthz":
+                    assert r.status_code == 200
+                    continue
+                assert r.status_code == 401, (method, url, headers, r.status_code, r.text)
+                assert r.headers["www-authenticate"] == "Bearer"
+                assert "Authorization: Bearer" in r.json()["detail"]
+                checked += 1
+    # The run and sweep routes, the pages, /metrics and the schema are all among them.
+    assert checked >= 3 * 15
+    paths = {getattr(r, "path", None) for r in app.routes}
+    assert {"/runs", "/sweeps", "/metrics", "/openapi.json", "/", "/scenarios"} <= paths
+
+
+def test_with_the_token_routes_answer(client: Client) -> None:
+    assert client.get("/scenarios", headers=AUTH).json() == ["baseline", "co_design", "smoke"]
+    assert client.get("/runs", headers=AUTH).json() == []
+    assert client.get("/metrics", headers=AUTH).status_code == 200
+    schema = client.get("/openapi.json", headers=AUTH).json()
+    # The schema says which operations need the token, and that /healthz does not.
+    assert schema["components"]["securitySchemes"]["token"] == {
+        "type": "http", "scheme": "bearer", "description": schema["components"]["securitySchemes"]["token"]["description"]}
+    assert "security" not in schema["paths"]["/healthz"]["get"]
+    assert schema["paths"]["/runs"]["post"]["security"] == [{"token": []}]
+
+
+def test_a_browser_logs_in_once_and_then_uses_a_cookie(client: Client) -> None:
+    assert client.get("/login", params={"token": "wrong-token-0123456789"}).status_code == 401
+    assert client.cookie is None
+    r = client.get("/login", params={"token": TOKEN})
+    assert r.status_code == 303 and r.headers["location"] == "/"
+    cookie = r.headers["set-cookie"].lower()
+    assert "httponly" in cookie and "samesite=strict" in cookie
+    for target, landing in (("/sweeps", "/sweeps"), ("//elsewhere.example/x", "/"), ("https://elsewhere.example", "/")):
+        r = client.get("/login", params={"token": TOKEN, "next": target})
+        assert r.status_code == 303 and r.headers["location"] == landing
+    page = client.get("/", headers={"accept": "text/html"})
+    assert page.status_code == 200 and "<html" in page.text
+    client.cookie = None
+    assert client.get("/", headers={"accept": "text/html"}).status_code == 401
+
+
+@pytest.mark.parametrize("name", ["../../etc/x", "/etc/passwd", "smoke/../smoke", "..", "smoke.yaml", ""])
+def test_names_from_a_request_are_checked_against_the_shipped_lists(client: Client, name: str) -> None:
+    r = client.post("/runs", json={"scenario": name}, headers=AUTH)
+    assert r.status_code == 422
+    assert r.json()["detail"] == [{"field": "scenario",
+                                   "message": f"{name!r} is not one of ['baseline', 'co_design', 'smoke']"}]
+    r = client.post("/sweeps", json={"spec": name}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "spec"
+    spec = {"name": "s", "base": name, "grid": {"loops": [2]}}
+    r = client.post("/sweeps", json={"spec": spec}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "base"
+
+
+def test_run_limits_are_answered_with_422_naming_the_limit(tmp_path: Path) -> None:
+    app, held = make_app(tmp_path, max_duration_s=20, max_run_timeout_s=600)
+    with serving(app) as c:
+        r = c.post("/runs", json={"scenario": "smoke", "config": {"duration_s": 21},
+                                  "overrides": ["watchdog.run_timeout_s=600"]}, headers=AUTH)
+        assert r.status_code == 422
+        [err] = r.json()["detail"]
+        assert err["field"] == "duration_s"
+        assert "max_duration_s" in err["message"] and "20 s" in err["message"] and "--max-duration-s" in err["message"]
+        r = c.post("/runs", json={"scenario": "smoke", "overrides": ["watchdog.run_timeout_s=601"]}, headers=AUTH)
+        assert r.status_code == 422
+        [err] = r.json()["detail"]
+        assert err["field"] == "watchdog.run_timeout_s" and "max_run_timeout_s" in err["message"]
+        # The scenario default (3600 s) is beyond this coordinator's limit too: named as well.
+        r = c.post("/runs", json={"scenario": "smoke", "config": {"duration_s": 20}}, headers=AUTH)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "watchdog.run_timeout_s"
+        ok = {"scenario": "smoke", "config": {"duration_s": 20}, "overrides": ["watchdog.run_timeout_s=600"]}
+        r = c.post("/runs", json=ok, headers=AUTH)
+        assert r.status_code == 201, r.text
+    assert held.started == [r.json()["run_id"]]
+
+
+def test_sweep_limits_are_answered_with_422_naming_the_limit(tmp_path: Path) -> None:
+    app, held = make_app(tmp_path, max_sweep_points=4, max_duration_s=30)
+    spec = {"name": "s", "base": "baseline", "grid": {"loops": [2, 4, 6]}, "seeds": 2,
+            "set": {"duration_s": 5, "detailed_loops": 0}}
+    with serving(app) as c:
+        r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)
+        assert r.status_code == 422
+        [err] = r.json()["detail"]
+        assert err["field"] == "grid" and "6 points" in err["message"] and "max_sweep_points" in err["message"]
+        # repeat_until's extra seeds count: 1 combination x up to 5 seeds.
+        r = c.post("/sweeps", json={"spec": {**spec, "grid": {"loops": [2]},
+                                             "repeat_until": {"min_tasks": 10, "max_seeds": 5}}}, headers=AUTH)
+        assert r.status_code == 422 and "max_sweep_points" in r.json()["detail"][0]["message"]
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"detailed_loops": 0},
+                                             "grid": {"loops": [2], "duration_s": [10, 40]}}}, headers=AUTH)
+        assert r.status_code == 422
+        [err] = r.json()["detail"]
+        assert err["field"] == "grid.duration_s" and "40 s" in err["message"] and "max_duration_s" in err["message"]
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"duration_s": 31, "detailed_loops": 0}}},
+                   headers=AUTH)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "set.duration_s"
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1}}, headers=AUTH)
+        assert r.status_code == 201, r.text
+    assert held.started == []
+
+
+def test_queued_work_beyond_the_limit_gets_429(tmp_path: Path) -> None:
+    app, held = make_app(tmp_path, max_queued=2)
+    small = {"scenario": "smoke", "config": {"duration_s": 2}}
+    with serving(app) as c:
+        first = c.post("/runs", json=small, headers=AUTH)
+        second = c.post("/runs", json=small, headers=AUTH)
+        assert first.status_code == second.status_code == 201
+        r = c.post("/runs", json=small, headers=AUTH)
+        assert r.status_code == 429
+        assert "max_queued" in r.json()["detail"] and "2 runs and sweeps" in r.json()["detail"]
+        assert "--max-queued" in r.json()["detail"] and r.headers["retry-after"]
+        r = c.post("/sweeps", json={"spec": "quick"}, headers=AUTH)
+        assert r.status_code == 429 and "max_queued" in r.json()["detail"]
+        # A cancelled run frees its place.
+        run_id = first.json()["run_id"]
+        assert c.post(f"/runs/{run_id}/cancel", headers=AUTH).status_code == 200
+        for _ in range(300):
+            if c.get(f"/runs/{run_id}", headers=AUTH).json()["status"] == "cancelled":
+                break
+            time.sleep(0.1)
+        assert c.post("/runs", json=small, headers=AUTH).status_code == 201
+        assert 'cosim_coordinator_requests_refused_total{reason="max_queued"}' in c.get(
+            "/metrics", headers=AUTH).text
+
+
+def test_limits_come_from_flags_then_environment_then_defaults() -> None:
+    env = {"COSIM5G_MAX_QUEUED": "3", "COSIM5G_MAX_DURATION_S": "60"}
+    limits = ApiLimits.from_env(env, max_duration_s=90.0, max_sweep_points=None)
+    assert (limits.max_queued, limits.max_duration_s, limits.max_sweep_points) == (3, 90.0, 1000)
+    with pytest.raises(ValueError, match=r"max_queued \(--max-queued, COSIM5G_MAX_QUEUED\).*given '0'"):
+        ApiLimits.from_env({"COSIM5G_MAX_QUEUED": "0"})
+
+
+def test_the_token_file_is_created_once_and_private(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("COSIM5G_TOKEN", raising=False)
+    path = tmp_path / "auth" / "api-token"
+    token = server_token(path)
+    assert len(token) >= 32 and server_token(path) == token
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    os.chmod(path, 0o644)
+    with pytest.raises(TokenError, match="readable by others.*chmod 600"):
+        server_token(path)
+    monkeypatch.setenv("COSIM5G_TOKEN", "short")
+    with pytest.raises(TokenError, match="at least 16"):
+        server_token(path)
+    monkeypatch.setenv("COSIM5G_TOKEN", TOKEN)
+    assert server_token(tmp_path / "unused") == TOKEN and not (tmp_path / "unused").exists()
+    # A token file named on purpose is made to hold the token given, for whoever reads it.
+    os.chmod(path, 0o600)
+    assert server_token(path, keep_env_token=True) == TOKEN
+    assert path.read_text().strip() == TOKEN and stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert sorted(p.name for p in path.parent.iterdir()) == ["api-token"]
+    assert token_matches(TOKEN, TOKEN) and not token_matches(TOKEN[:-1], TOKEN)
+
+
+def test_routes_are_api_routes_so_the_dependency_reaches_them(client: Client) -> None:
+    """Routes that bypass the app's dependencies (plain Starlette routes, mounts) would bypass the
+    token: there must be none."""
+    app = client.app
+    assert isinstance(app, FastAPI)
+    assert all(isinstance(r, APIRoute) for r in app.routes), [r for r in app.routes if not isinstance(r, APIRoute)]
