@@ -1,11 +1,34 @@
-"""``make calibrate``: the real workloads under node profiles of 1.0, 0.5 and 0.25 cpus.
+"""``make calibrate``: how faithful compute emulation is, measured on the real workloads.
 
-For each workload and profile it reports the CPU time of a job without any limit (same image,
-same interpreter, no CPU quota), the wall time of the job inside a container with that CFS quota
-(what ``wall`` timing measures), the ``cpu``-mode estimate (CPU time in the container / cpus),
-the ideal (unlimited CPU time / cpus) and the ratios of both to the ideal. Medians over
-repetitions. The profiles are measured in interleaved rounds, because a shared virtual machine's
-speed drifts over minutes. Written to results/bench/calibrate.md.
+Every workload of ``services.workloads`` (spin, compress, pose, control and the host-speed scoring
+mix) runs as jobs of a node of 1, 0.5 and 0.25 cpus, and of an unlimited node (the baseline), in
+interleaved rounds (round r visits the runtimes and the profiles in a rotated order, so a drift
+of the host's speed over minutes hits every cell alike), at least ``--rounds x --jobs`` jobs per
+cell. Per runtime, workload and cpus it reports, with bootstrap 95% confidence intervals of the
+ratio of medians:
+
+- ``cpu-mode / ideal``: the emulated duration in ``cpu`` timing (the job's own CPU time / cpus)
+  over the ideal (the unlimited node's CPU time for the same job / cpus);
+- ``wall / ideal``: the job's wall time on the limited node (what ``wall`` timing measures);
+- ``process clock / ideal``: the same estimate from the process CPU clock, which counts every
+  thread of the process: how jobs were measured before they had a clock of their own;
+
+and where an error remains, measurements of its causes: the pure-interpreter ``spin`` job as the
+control for clock-speed changes (its working set fits the L1 cache: if it slows down, the core
+did -- frequency, host contention -- not the caches), so a job's excess beyond spin's is caches and
+memory; throttled CFS periods per job and, within a cell, the CPU time of jobs throttled at least
+once over that of jobs never throttled (caches refilled after the node was descheduled);
+involuntary context switches; the CPU share of library worker threads; the host's speed drift
+between rounds (the scoring mix on the unlimited node); the idle-wake penalty of the core (a short
+L1-resident loop right after 10 ms of idle vs right after busy: what a throttled node meets at
+every period).
+
+Runtimes: ``process`` (a plain process, no cgroup: there is no CPU limit, so wall / ideal is about
+cpus), ``docker`` (a container of the runtime image with the docker runtime's cgroup limits: CFS
+period 10 ms, quota cpus x period) and ``cgroup`` (a plain process in a cgroup with the docker
+runtime's limits, for a host that has no images yet; needs a writable cgroup hierarchy).
+``--runtime both`` is process + docker. Written to results/bench/calibrate.{md,json};
+``--rebuild`` renders the report again from a saved calibrate.json.
 """
 
 from __future__ import annotations
@@ -14,80 +37,421 @@ import argparse
 import json
 import os
 import statistics
+import subprocess
 import sys
+from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from coordinator.launcher import NodeLimits
-from coordinator.runtime_docker import RUNTIME_IMAGE, cgroup_limits, docker_client
 
 PROFILES = (1.0, 0.5, 0.25)
+RUNTIMES = ("process", "docker", "cgroup")
 ROOT = Path(__file__).parents[1]
+BOOTSTRAP = 2000
+TARGET = 0.05  # cpu-mode / ideal should be within 5% of 1 (median)
+JOB_COLUMNS = ("runtime", "round", "cpus", "workload", "cpu_us", "thread_us", "helper_us", "process_us",
+               "wall_us", "duration_us", "throttled_us", "throttled_periods", "nivcsw")
+WORKER_TIMEOUT_S = 3600
 
 
-def in_container(client: Any, cpus: float | None, reps: int) -> dict[str, Any]:
-    """Run the workloads in the runtime image; ``cpus`` None: no CPU quota (the baseline, with the
-    image's own interpreter -- the host's may be a different build and speed)."""
-    raw = client.containers.run(
-        RUNTIME_IMAGE, ["python", "-m", "services.workloads", "--reps", str(reps)],
-        environment={"MUJOCO_GL": "egl", "HOME": "/tmp"}, remove=True, read_only=True,
-        tmpfs={"/tmp": "size=64m"}, cap_drop=["ALL"], network_mode="none",
-        **cgroup_limits(NodeLimits(cpus=cpus, mem_mb=1024)),
-    )
-    return dict(json.loads(raw.decode().strip().splitlines()[-1]))
+class CalibrateError(RuntimeError):
+    """The calibration cannot run as asked; the message says why and what to do."""
 
 
-def table(host: dict[str, Any], limited: dict[float, dict[str, Any]]) -> list[dict[str, Any]]:
+def _last_json_line(text: str, where: str) -> dict[str, Any]:
+    for line in reversed(text.strip().splitlines()):
+        if line.startswith("{"):
+            return dict(json.loads(line))
+    raise CalibrateError(f"{where}: the workloads printed no result; its output ended with:\n{text[-2000:]}")
+
+
+def _worker_argv(cpus: float | None, jobs: int, only: list[str] | None) -> list[str]:
+    argv = ["-m", "services.workloads", "--jobs", str(jobs)]
+    if cpus is not None:
+        argv += ["--cpus", repr(cpus)]
+    if only:
+        argv += ["--only", *only]
+    return argv
+
+
+class ProcessRunner:
+    """The workloads in a plain process, with the process runtime's environment; no CPU limit."""
+
+    name = "process"
+
+    def __init__(self, only: list[str] | None = None) -> None:
+        self.only = only
+
+    def env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        env.setdefault("MUJOCO_GL", "egl")
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")  # as coordinator.runtime_process starts federates
+        return env
+
+    def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:
+        return self._spawn(cpus, jobs, None)
+
+    def _spawn(self, cpus: float | None, jobs: int, preexec: Callable[[], None] | None) -> dict[str, Any]:
+        proc = subprocess.run([sys.executable, *_worker_argv(cpus, jobs, self.only)], cwd=ROOT,
+                              env=self.env(), capture_output=True, text=True, timeout=WORKER_TIMEOUT_S,
+                              preexec_fn=preexec)
+        if proc.returncode != 0:
+            raise CalibrateError(f"{self.name} workloads (cpus={cpus}) failed with exit code "
+                                 f"{proc.returncode}:\n{proc.stderr[-3000:]}")
+        return _last_json_line(proc.stdout, f"{self.name} workloads (cpus={cpus})")
+
+
+class CgroupRunner(ProcessRunner):
+    """The workloads in a plain process inside a new cgroup with the docker runtime's limits."""
+
+    name = "cgroup"
+
+    def __init__(self, only: list[str] | None = None) -> None:
+        super().__init__(only)
+        root = Path("/sys/fs/cgroup")
+        self.v2 = (root / "cgroup.controllers").exists()
+        self.parent = root if self.v2 else root / "cpu"
+        if not os.access(self.parent, os.W_OK) or (self.v2 and "cpu" not in _read(root / "cgroup.subtree_control")):
+            raise CalibrateError(
+                f"the cgroup runtime needs a writable cgroup hierarchy with the cpu controller "
+                f"({self.parent}): run as root, or use --runtime process or docker")
+        self.count = 0
+
+    def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:
+        if cpus is None:
+            return self._spawn(None, jobs, None)
+        from coordinator.runtime_docker import CFS_PERIOD_US, cfs_quota_us
+
+        self.count += 1
+        group = self.parent / f"cosim5g-calibrate-{os.getpid()}-{self.count}"
+        group.mkdir()
+        try:
+            quota = cfs_quota_us(cpus)
+            if self.v2:
+                (group / "cpu.max").write_text(f"{quota} {CFS_PERIOD_US}\n")
+            else:
+                (group / "cpu.cfs_period_us").write_text(f"{CFS_PERIOD_US}\n")
+                (group / "cpu.cfs_quota_us").write_text(f"{quota}\n")
+            procs = group / "cgroup.procs"
+
+            def join() -> None:  # in the child, before it runs any workload
+                procs.write_text(f"{os.getpid()}\n")
+
+            return self._spawn(cpus, jobs, join)
+        finally:
+            group.rmdir()
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
+
+
+class DockerRunner:
+    """The workloads in a container of the runtime image, with the docker runtime's cgroup limits
+    and environment (no BLAS thread setting: the docker runtime sets none)."""
+
+    name = "docker"
+
+    def __init__(self, only: list[str] | None = None, source: bool = False) -> None:
+        from docker.errors import ImageNotFound
+
+        from coordinator.runtime_docker import RUNTIME_IMAGE, DockerRuntimeError, docker_client
+
+        self.only = only
+        self.source = source
+        self.image = RUNTIME_IMAGE
+        try:
+            self.client = docker_client()
+        except DockerRuntimeError as exc:
+            raise CalibrateError(str(exc)) from None
+        try:
+            self.client.images.get(self.image)
+        except ImageNotFound:
+            raise CalibrateError(f"image {self.image} not found: build it with `make images`, or "
+                                 "use --runtime process (or cgroup)") from None
+
+    def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:
+        from coordinator.runtime_docker import cgroup_limits
+
+        env = {"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl", "HOME": "/tmp"}
+        mounts = {}
+        if self.source:  # this working tree's code instead of the copy installed in the image
+            env.update(PYTHONPATH="/src", PYTHONDONTWRITEBYTECODE="1")
+            mounts = {str(ROOT): {"bind": "/src", "mode": "ro"}}
+        raw = self.client.containers.run(
+            self.image, ["python", *_worker_argv(cpus, jobs, self.only)],
+            environment=env, volumes=mounts,
+            remove=True, read_only=True, tmpfs={"/tmp": "size=64m"}, cap_drop=["ALL"],
+            security_opt=["no-new-privileges"], network_mode="none",
+            **cgroup_limits(NodeLimits(cpus=cpus, mem_mb=1024)),
+        )
+        return _last_json_line(raw.decode(), f"docker workloads (cpus={cpus})")
+
+
+RUNNERS: dict[str, type[ProcessRunner]] = {"process": ProcessRunner, "cgroup": CgroupRunner}
+
+
+# ---- statistics -------------------------------------------------------------------------------
+
+def ratio_of_medians(num: np.ndarray, den: np.ndarray, gen: np.random.Generator,
+                     n_boot: int = BOOTSTRAP) -> dict[str, Any]:
+    """median(num) / median(den) with a percentile-bootstrap 95% CI (both samples resampled)."""
+    point = float(np.median(num) / np.median(den))
+    bn = np.median(num[gen.integers(0, len(num), (n_boot, len(num)))], axis=1)
+    bd = np.median(den[gen.integers(0, len(den), (n_boot, len(den)))], axis=1)
+    lo, hi = np.percentile(bn / bd, [2.5, 97.5])
+    return {"median": round(point, 4), "ci95": [round(float(lo), 4), round(float(hi), 4)]}
+
+
+def _col(jobs: list[dict[str, Any]], name: str) -> np.ndarray:
+    return np.array([j[name] for j in jobs if j[name] is not None], dtype=float)
+
+
+def analyse(jobs: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
+    """One row per runtime, workload and cpus (the unlimited baseline included, as cpus None)."""
+    gen = np.random.default_rng(seed)
     rows = []
-    for name, h in host.items():
-        host_cpu = statistics.median(h["cpu_ms"])
-        for cpus in PROFILES:
-            c = limited[cpus][name]
-            wall = statistics.median(c["wall_ms"])
-            cpu_mode = statistics.median(c["cpu_ms"]) / cpus
-            ideal = host_cpu / cpus
-            rows.append({"workload": name, "cpus": cpus, "host_cpu_ms": host_cpu, "wall_ms": wall,
-                         "cpu_mode_ms": cpu_mode, "ideal_ms": ideal,
-                         "wall_over_ideal": wall / ideal, "cpu_mode_over_ideal": cpu_mode / ideal})
+    cells: dict[tuple[str, str, float | None], list[dict[str, Any]]] = {}
+    for j in jobs:
+        cells.setdefault((j["runtime"], j["workload"], j["cpus"]), []).append(j)
+    for runtime in [r for r in RUNTIMES if any(k[0] == r for k in cells)]:
+        workloads = sorted({k[1] for k in cells if k[0] == runtime}, key=_workload_order)
+        for w in workloads:
+            base = cells.get((runtime, w, None), [])
+            if not base:
+                continue
+            base_cpu, base_proc = _col(base, "cpu_us"), _col(base, "process_us")
+            rows.append({"runtime": runtime, "workload": w, "cpus": None, "n": len(base),
+                         "cpu_ms": round(float(np.median(base_cpu)) / 1000, 3)})
+            for cpus in PROFILES:
+                lim = cells.get((runtime, w, cpus), [])
+                if not lim:
+                    continue
+                cpu, wall = _col(lim, "cpu_us"), _col(lim, "wall_us")
+                row: dict[str, Any] = {
+                    "runtime": runtime, "workload": w, "cpus": cpus, "n": len(lim),
+                    "ideal_ms": round(float(np.median(base_cpu)) / cpus / 1000, 3),
+                    "cpu_mode_ms": round(float(np.median(_col(lim, "duration_us"))) / 1000, 3),
+                    "cpu_mode_over_ideal": ratio_of_medians(_col(lim, "duration_us"), base_cpu / cpus, gen),
+                    "wall_over_ideal": ratio_of_medians(wall, base_cpu / cpus, gen),
+                    "process_clock_over_ideal": ratio_of_medians(_col(lim, "process_us"), base_proc, gen),
+                    "helper_cpu_share": round(float(_col(lim, "helper_us").sum() / max(cpu.sum(), 1)), 4),
+                    "nivcsw_per_job": float(np.median(_col(lim, "nivcsw"))),
+                }
+                periods = _col(lim, "throttled_periods")
+                if len(periods) == len(lim):
+                    row["throttled_periods_per_job"] = float(np.median(periods))
+                    hit, missed = cpu[periods > 0], cpu[periods == 0]
+                    if len(hit) >= 5 and len(missed) >= 5:
+                        # Jobs of one cell differ in whether the quota ran out during them (the
+                        # phase of the period they start in): the CPU time a throttle costs.
+                        row["throttled_over_unthrottled_cpu"] = round(float(np.median(hit) / np.median(missed)), 4)
+                rows.append(row)
     return rows
 
 
-def render(rows: list[dict[str, Any]]) -> str:
-    head = ("| workload | cpus | unlimited CPU ms | wall ms (limited) | cpu-mode ms | ideal ms | "
-            "wall / ideal | cpu-mode / ideal |")
-    lines = [head, "|" + "---|" * 8]
-    for r in rows:
-        lines.append(f"| {r['workload']} | {r['cpus']:.2f} | {r['host_cpu_ms']:.2f} | {r['wall_ms']:.2f} | "
-                     f"{r['cpu_mode_ms']:.2f} | {r['ideal_ms']:.2f} | {r['wall_over_ideal']:.2f} | "
-                     f"{r['cpu_mode_over_ideal']:.2f} |")
-    return "\n".join(lines)
+def _workload_order(name: str) -> tuple[int, str]:
+    order = ("spin", "compress", "pose", "control", "score")
+    return (order.index(name) if name in order else len(order), name)
+
+
+def diagnose(rows: list[dict[str, Any]], jobs: list[dict[str, Any]],
+             meta: dict[str, Any] | None = None) -> list[str]:
+    """Measured causes of the errors that remain (sentences for the report)."""
+    out = []
+    penalty = (meta or {}).get("idle_wake_penalty") or {}
+    if penalty:
+        out.append("Idle-wake penalty (CPU time of a 2 ms L1-resident loop right after 10 ms of idle "
+                   "over right after busy, median of 30 pairs; a node throttled by its quota meets it "
+                   "at every period): " + ", ".join(f"{k} {v:.3f}" for k, v in sorted(penalty.items()))
+                   + ".")
+    by = {(r["runtime"], r["workload"], r["cpus"]): r for r in rows}
+    for runtime in sorted({r["runtime"] for r in rows}, key=RUNTIMES.index):
+        rounds = sorted({j["round"] for j in jobs if j["runtime"] == runtime})
+        speeds = []
+        for rnd in rounds:
+            score_cpu = [j["cpu_us"] for j in jobs if j["runtime"] == runtime and j["round"] == rnd
+                         and j["workload"] == "score" and j["cpus"] is None]
+            if score_cpu:
+                speeds.append(statistics.median(score_cpu))
+        if len(speeds) > 1:
+            out.append(f"{runtime}: host speed drift between rounds (scoring mix, unlimited node): "
+                       f"slowest round / fastest = {max(speeds) / min(speeds):.3f}.")
+        for cpus in PROFILES:
+            spin = by.get((runtime, "spin", cpus))
+            for w in ("spin", "compress", "pose", "control", "score"):
+                r = by.get((runtime, w, cpus))
+                if r is None:
+                    continue
+                ratio = r["cpu_mode_over_ideal"]["median"]
+                if abs(ratio - 1) <= TARGET:
+                    continue
+                parts = [f"{runtime} {w} at {cpus} cpus: cpu-mode / ideal {ratio:.3f}"]
+                if spin is not None and w != "spin":
+                    # spin's working set fits L1: its excess is the core's clock (frequency, host
+                    # speed), the rest of this job's excess is what spin does not have (caches).
+                    clock = spin["cpu_mode_over_ideal"]["median"]
+                    parts.append(f"spin (clock-speed control, same cells) {clock:.3f}, so clock speed "
+                                 f"{clock - 1:+.1%} and caches/memory {ratio - clock:+.1%}")
+                elif w == "spin":
+                    parts.append("spin's working set fits L1: a change of the core's clock (frequency, "
+                                 "host contention between the rounds)")
+                if "throttled_periods_per_job" in r:
+                    parts.append(f"{r['throttled_periods_per_job']:g} throttled CFS periods per job")
+                if "throttled_over_unthrottled_cpu" in r:
+                    parts.append(f"jobs throttled at least once used {r['throttled_over_unthrottled_cpu'] - 1:+.1%} "
+                                 "CPU time vs jobs never throttled (cache refills after throttling)")
+                parts.append(f"{r['nivcsw_per_job']:g} involuntary context switches per job")
+                if r["helper_cpu_share"] > 0.01:
+                    parts.append(f"{r['helper_cpu_share']:.1%} of its CPU on library worker threads")
+                out.append("; ".join(parts) + ".")
+    return out
+
+
+# ---- report -----------------------------------------------------------------------------------
+
+def _ci(cell: dict[str, Any]) -> str:
+    lo, hi = cell["ci95"]
+    return f"{cell['median']:.3f} [{lo:.3f}, {hi:.3f}]"
+
+
+def render(meta: dict[str, Any], rows: list[dict[str, Any]], notes: list[str]) -> str:
+    lines = [
+        "# Compute emulation calibration",
+        "",
+        f"{meta['date']}, {meta['cpu_model']} ({meta['cores']} cores), load average (1 min) "
+        f"{meta['load_start']:.2f} at the start and {meta['load_end']:.2f} at the end; {meta['rounds']} "
+        f"interleaved rounds x {meta['jobs']} jobs per workload and profile. Medians with bootstrap "
+        "95% CIs of the ratio of medians. Ideal = the unlimited node's CPU time for the job / cpus.",
+        f"Reference core: score {meta['reference_score']:.1f} ({meta['reference_cpu_model']}, "
+        f"{meta['reference_date']}); scores measured here: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in meta["host_scores"].items()) + ".",
+        "",
+    ]
+    for runtime in [r for r in RUNTIMES if any(x["runtime"] == r for x in rows)]:
+        lines += [f"## {runtime}", ""]
+        if runtime == "process":
+            lines += ["No cgroup: nothing limits the node's CPU, so wall / ideal is about cpus "
+                      "(wall timing is refused there); cpu-mode / ideal is the check.", ""]
+        lines += ["| workload | cpus | n | unlimited CPU ms | ideal ms | cpu-mode / ideal | wall / ideal | "
+                  "process clock / ideal (before) | throttled periods / job |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        base = {r["workload"]: r for r in rows if r["runtime"] == runtime and r["cpus"] is None}
+        for r in rows:
+            if r["runtime"] != runtime or r["cpus"] is None:
+                continue
+            lines.append(
+                f"| {r['workload']} | {r['cpus']:.2f} | {r['n']} | {base[r['workload']]['cpu_ms']:.2f} | "
+                f"{r['ideal_ms']:.2f} | {_ci(r['cpu_mode_over_ideal'])} | {_ci(r['wall_over_ideal'])} | "
+                f"{_ci(r['process_clock_over_ideal'])} | {r.get('throttled_periods_per_job', '-')} |")
+        lines.append("")
+    lines += ["## Where an error remains", ""]
+    lines += [f"- {n}" for n in notes] or ["- every cpu-mode / ideal median is within 5%."]
+    return "\n".join(lines) + "\n"
+
+
+def _reference_meta() -> dict[str, Any]:
+    from services.common import host_speed
+
+    ref = host_speed.reference()
+    return {"reference_score": ref.score, "reference_cpu_model": ref.env.get("cpu_model", ""),
+            "reference_date": ref.measured_at}
+
+
+def calibrate(runtimes: list[str], rounds: int, jobs: int, only: list[str] | None,
+              log: Callable[[str], None] = print, source: bool = False,
+              ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Run the rounds; (meta, per-job rows)."""
+    from services.common import host_speed
+
+    runners = [DockerRunner(only, source) if r == "docker" else RUNNERS[r](only) for r in runtimes]
+    load_start = os.getloadavg()[0]
+    rows: list[dict[str, Any]] = []
+    scores: dict[str, list[float]] = {}
+    penalties: dict[str, list[float]] = {}
+    profiles: list[float | None] = [None, *PROFILES]
+    for rnd in range(rounds):
+        for k in range(len(runners)):
+            runner = runners[(rnd + k) % len(runners)]
+            for i in range(len(profiles)):
+                cpus = profiles[(rnd + i) % len(profiles)]
+                log(f"round {rnd + 1}/{rounds}: {runner.name}, cpus={cpus or 'unlimited'}")
+                result = runner.run(cpus, jobs)
+                scores.setdefault(runner.name, []).append(float(result["env"]["host_score"]))
+                penalty = result["env"].get("idle_wake_penalty")
+                if penalty is not None:
+                    penalties.setdefault(f"{runner.name} {cpus or 'unlimited'}", []).append(float(penalty))
+                for name, per_job in result["workloads"].items():
+                    for j in per_job:
+                        rows.append({"runtime": runner.name, "round": rnd, "cpus": cpus,
+                                     "workload": name, **{c: j.get(c) for c in JOB_COLUMNS[4:]}})
+    meta = {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "cpu_model": host_speed.cpu_model(), "cores": os.cpu_count(),
+        "load_start": load_start, "load_end": os.getloadavg()[0],
+        "rounds": rounds, "jobs": jobs, "runtimes": runtimes, "docker_source": source,
+        "host_scores": {k: statistics.median(v) for k, v in scores.items()},
+        "idle_wake_penalty": {k: statistics.median(v) for k, v in penalties.items()},
+        **_reference_meta(),
+    }
+    return meta, rows
+
+
+def write(out: Path, meta: dict[str, Any], jobs: list[dict[str, Any]]) -> str:
+    rows = analyse(jobs)
+    notes = diagnose(rows, jobs, meta)
+    text = render(meta, rows, notes)
+    out.mkdir(parents=True, exist_ok=True)
+    data = {"meta": meta, "rows": rows, "notes": notes,
+            "jobs": {"columns": list(JOB_COLUMNS), "rows": [[j[c] for c in JOB_COLUMNS] for j in jobs]}}
+    for name, body in (("calibrate.json", json.dumps(data, indent=1) + "\n"), ("calibrate.md", text)):
+        tmp = out / f".{name}.tmp"
+        tmp.write_text(body)
+        tmp.replace(out / name)
+    return text
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--reps", type=int, default=5, help="repetitions per container")
-    ap.add_argument("--rounds", type=int, default=4, help="interleaved rounds over the profiles")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runtime", choices=[*RUNTIMES, "both"], default="both",
+                    help="where the workloads run (both: process and docker)")
+    ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds over runtimes and profiles")
+    ap.add_argument("--jobs", type=int, default=6, help="jobs per workload, profile and round")
+    ap.add_argument("--only", nargs="*", help="workload names (default: all)")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
+    ap.add_argument("--rebuild", action="store_true", help="render the report again from OUT/calibrate.json")
+    ap.add_argument("--source", action="store_true",
+                    help="docker: run this working tree's code (mounted read-only) in the runtime image, "
+                    "instead of the copy installed in it at `make images`")
     args = ap.parse_args(argv)
-    client = docker_client()
-    load = os.getloadavg()[0]
-    samples: dict[float | None, dict[str, Any]] = {}
-    for _ in range(args.rounds):
-        for cpus in (None, *PROFILES):
-            for name, m in in_container(client, cpus, args.reps).items():
-                acc = samples.setdefault(cpus, {}).setdefault(name, {"cpu_ms": [], "wall_ms": []})
-                acc["cpu_ms"] += m["cpu_ms"]
-                acc["wall_ms"] += m["wall_ms"]
-    host = samples.pop(None)
-    limited = {cpus: samples[cpus] for cpus in PROFILES}
-    rows = table(host, limited)
-    text = render(rows) + (f"\n\nHost load average (1 min) at the start: {load:.2f} on {os.cpu_count()} cores; "
-                           "ratios are meaningful on an otherwise idle host only.")
-    print(text)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "calibrate.md").write_text(text + "\n")
-    (args.out / "calibrate.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print(f"written to {args.out / 'calibrate.md'}")
+    if args.rounds < 1 or args.jobs < 1:
+        ap.error("--rounds and --jobs must be at least 1")
+    try:
+        if args.rebuild:
+            data = json.loads((args.out / "calibrate.json").read_text())
+            cols = data["jobs"]["columns"]
+            jobs = [dict(zip(cols, r, strict=True)) for r in data["jobs"]["rows"]]
+            meta = data["meta"]
+        else:
+            runtimes = ["process", "docker"] if args.runtime == "both" else [args.runtime]
+            if args.rounds * args.jobs < 30:
+                print(f"note: {args.rounds * args.jobs} jobs per cell (fewer than 30): a functional check, "
+                      "not a calibration", file=sys.stderr)
+            meta, jobs = calibrate(runtimes, args.rounds, args.jobs, args.only,
+                                   log=lambda m: print(m, file=sys.stderr), source=args.source)
+    except (CalibrateError, OSError) as exc:
+        print(f"calibrate: {exc}", file=sys.stderr)
+        return 2
+    print(write(args.out, meta, jobs), end="")
+    print(f"written to {args.out / 'calibrate.md'} and calibrate.json", file=sys.stderr)
     return 0
 
 

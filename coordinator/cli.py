@@ -51,6 +51,18 @@ def _progress_writer(path: Path, every_s: float = 1.0) -> Any:
     return write
 
 
+def cancel_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM: the run or sweep then ends cleanly as cancelled."""
+    cancel = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        cancel.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    return cancel
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
@@ -98,13 +110,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ScenarioError as exc:
         print(f"{args.file}: invalid scenario\n{exc.format()}", file=sys.stderr)
         return 2
-    cancel = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        cancel.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    cancel = cancel_on_signals()
     shows = [] if args.quiet else [_progress_printer(sys.stderr)]
     if args.progress_file:
         shows.append(_progress_writer(Path(args.progress_file)))
@@ -164,13 +170,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError, ImportError) as exc:
         print(str(exc), file=sys.stderr)
         return 2
-    cancel = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        cancel.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    cancel = cancel_on_signals()
     print(f"sweep {sweep.sweep_id}: {sweep.dir.path}", file=sys.stderr)
 
     def on_event(kind: str, data: dict[str, Any]) -> None:

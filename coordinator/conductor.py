@@ -5,6 +5,9 @@ Each window it publishes ``advance(t_end, expected_in)``, waits until every fede
 and picks the next window: the one after, or -- when every federate's next event and every
 message in flight lies later -- straight the window holding the earliest of them (idle jump).
 While waiting it polls a health check so that a dead or silent federate fails the run at once.
+
+The conductor declares the coordinator's liveliness token on its bus: the federates leave when
+it vanishes, so a coordinator that dies takes its run's federates with it.
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ class Conductor:
         bus.subscribe(keys.ready_all(run_id), lambda k, p: self._inbox.put(("ready", k, p)))
         bus.subscribe(keys.done_all(run_id), lambda k, p: self._inbox.put(("done", k, p)))
         bus.subscribe(keys.stopped_all(run_id), lambda k, p: self._inbox.put(("stopped", k, p)))
+        bus.declare_token(keys.coordinator_alive(run_id))
 
     def _next(self, deadline: float, check_health: bool = True) -> tuple[str, str, bytes] | None:
         """Next control message, polling health every 50 ms; None at the deadline."""

@@ -2,7 +2,9 @@
 
 Layout of a run directory: ``config.yaml`` (resolved scenario), ``versions.json``, ``kpis.json``,
 ``tasks.parquet`` (per task), ``packets.parquet`` (per IP packet), ``jobs.parquet`` (per compute
-job), ``frames.parquet`` (per camera frame), ``logs/`` and ``frames/`` (PNG snapshots).
+job), ``frames.parquet`` (per camera frame), ``logs/`` and ``frames/`` (PNG snapshots). While the
+run goes, federates stream their rows to ``tables/<table>-<federate>.arrows``; ``merge_tables``
+turns those into the four Parquet files, for completed and failed runs alike.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from services.common.tables import read_rows, write_table
+from services.common.tables import TABLES, merge_parts, read_rows, write_table
 
 
 def versions() -> dict[str, str]:
@@ -37,17 +39,21 @@ def versions() -> dict[str, str]:
     return out
 
 
-def merge_tables(run_dir: Path, prefix: str) -> list[dict[str, Any]]:
-    """Concatenate ``tables/<prefix>-*.parquet`` into ``<prefix>.parquet``."""
-    rows: list[dict[str, Any]] = []
-    for path in sorted((run_dir / "tables").glob(f"{prefix}-*.parquet")):
-        part = read_rows(path)
-        keys = sorted({k for r in part for k in r})
-        rows.extend({k: r.get(k) for k in keys} for r in part)
-    if rows:
-        columns = sorted({k for r in rows for k in r})
-        write_table(run_dir / f"{prefix}.parquet", [{k: r.get(k) for k in columns} for r in rows])
-    return rows
+def merge_tables(run_dir: Path) -> dict[str, dict[str, Any]]:
+    """Merge the federates' streamed parts of every run table (``tasks``, ``packets``, ``jobs``,
+    ``frames``) into ``<table>.parquet``; a table nobody wrote to is written empty, with its
+    columns. Per table: rows merged and, per federate, rows, simulated time recorded up to and
+    whether the federate closed its part (``services.common.tables.merge_parts``). Merging again
+    keeps what was merged."""
+    return {name: merge_parts(run_dir, name) for name in TABLES}
+
+
+def recorded_summary(merged: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """How far the records of a run go, for ``kpis.json``: rows per table, and per part (a list,
+    so that sweep records, which flatten dicts, skip it) the federate's rows and reach."""
+    parts = [{"table": table, "federate": fed, **info}
+             for table, m in merged.items() for fed, info in sorted(m["parts"].items())]
+    return {"rows": {table: m["rows"] for table, m in merged.items()}, "parts": parts}
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -56,10 +62,10 @@ def _pct(values: list[float], q: float) -> float | None:
 
 def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]:
     """KPIs from the tables of a finished run."""
+    merge_tables(run_dir)  # keeps the merged tables when the run merged them already
     tasks = [t for t in read_rows(run_dir / "tasks.parquet") if t["outcome"] != "unfinished"]
     packets = read_rows(run_dir / "packets.parquet")
-    jobs = merge_tables(run_dir, "jobs")
-    merge_tables(run_dir, "frames")
+    jobs = read_rows(run_dir / "jobs.parquet")
     sim = max(sim_time_s, 1e-9)
     ul = [p for p in packets if p["dir"] == "ul"]
     dl = [p for p in packets if p["dir"] == "dl"]

@@ -20,7 +20,7 @@ from typing import Any
 
 from coordinator.conductor import Conductor, Progress, RunFailed
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
-from coordinator.results import compute_kpis, loop_kpis, versions
+from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
 from services.common import keys
 from services.common.scenario import Scenario, dump_scenario
 from services.common.tables import write_json
@@ -72,6 +72,8 @@ class LivenessWatch:
 
     def _on_change(self, key: str, alive: bool) -> None:
         name = keys.last_segment(key)
+        if name == keys.COORDINATOR:  # our own token (the conductor's), not a federate's
+            return
         if alive:
             self.seen.add(name)
         elif self.armed and name in self.seen:
@@ -165,6 +167,13 @@ def execute_run(
         missing = sorted({n for n, _ in scenario.federates()} - set(stopped))
         status, reason = "failed", f"no final report from {', '.join(missing)}"
     kpis: dict[str, Any] = {}
+    # What the federates streamed, merged for completed and failed runs alike; with how far it got.
+    recorded: dict[str, Any] = {"sim_time_reached_s": sim_s}
+    try:
+        recorded.update(recorded_summary(merge_tables(run_dir)))
+    except Exception as exc:
+        log.exception("run %s: merging the tables failed", run_id)
+        recorded["error"] = f"{type(exc).__name__}: {exc}"
     try:
         kpis = compute_kpis(run_dir, sim_s, scenario.loops)
     except Exception as exc:  # tables of a failed run may be missing or partial
@@ -192,9 +201,12 @@ def execute_run(
         "real_time_factor": sim_s / wall_s if wall_s > 0 else None,
         "windows": windows,
         "windows_trace": result_trace,
+        "recorded": recorded,
         "trace_hash": trace,
         "results_dir": str(run_dir),
         "federates": summaries,
+        # Per node: host score, scale to the reference core, speed during the run, drift flag.
+        "compute_speed": {n: s["compute_speed"] for n, s in summaries.items() if "compute_speed" in s},
     })
     write_json(run_dir / "kpis.json", kpis)
     write_json(run_dir / "status.json", {"run_id": run_id, "status": status, "reason": reason,

@@ -171,6 +171,11 @@ def reap_dead_runs(client: Any, alive_run_ids: Iterable[str] = ()) -> list[str]:
     A run is alive if its id is in ``alive_run_ids`` or the coordinator process that started it
     is still alive (``cosim5g.owner`` label). Call at coordinator start-up, when no run of this
     coordinator exists yet. Returns the reaped run ids.
+
+    A coordinator that dies does not leave its federates running until then: each federate
+    leaves within seconds of the coordinator's liveliness token vanishing (``services.main``), so
+    what is left of a dead run is exited containers (kept for their logs and exit codes) and the
+    run network, running or not alike removed here.
     """
     alive = set(alive_run_ids)
     containers = client.containers.list(all=True, filters={"label": LABEL_RUN})

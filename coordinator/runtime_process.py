@@ -3,6 +3,10 @@
 Each federate runs in its own process group so that stopping the run also ends anything it
 started; the node profile's CPU limit applies through the compute emulator's timing (``cpu`` or
 ``model``), since unprivileged hosts usually do not let us create cgroups.
+
+Being in a session of its own, a federate is not ended with its coordinator's terminal or
+process group: it learns of the coordinator's death itself (``services.main``: the coordinator's
+liveliness token, and the parent-death signal, for which it is told the coordinator's pid).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from collections import deque
 from pathlib import Path
 
 from coordinator.launcher import FederateSpec, Launcher
+from services.main import PARENT_PID_ENV
 
 
 class ProcessLauncher(Launcher):
@@ -34,6 +39,7 @@ class ProcessLauncher(Launcher):
         env = dict(os.environ)
         env.setdefault("MUJOCO_GL", "egl")
         env["PYTHONUNBUFFERED"] = "1"
+        env[PARENT_PID_ENV] = str(os.getpid())
         # One thread per process: the node's speed is emulated, and BLAS/OpenMP thread pools on a
         # shared host only add noise to CPU-time measurements.
         for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):

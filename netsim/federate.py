@@ -3,7 +3,8 @@ loss with its cause) using a cell model, and records every packet's fate.
 
 Packets arrive as ``packet`` messages whose body names the UE, direction, flow, size, the
 destination federate and the application record to deliver; the destination receives a message
-of kind ``app.type`` with the application record and the payload bytes.
+of kind ``app.type`` with the application record and the payload bytes. Packet records stream to
+the ``packets`` table as packets are decided: nothing per packet is kept past its fate.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from netsim.simple import SimpleCell
 from services.common import metrics
 from services.common.federate import Federate
 from services.common.messages import Message
-from services.common.tables import write_table
 
 
 def make_cell(federate: Federate) -> Cell:
@@ -59,7 +59,7 @@ class NetsimFederate(Federate):
         self.slot_us = self.scenario.netsim.slot_us
         self.next_packet_id = 0
         self.slot_scheduled: int | None = None
-        self.records: list[dict[str, Any]] = []
+        self.packets = self.table("packets")
         self.flow_pdb: dict[str, int | None] = {}
         # Simulated-time rates for the dashboards, refreshed every simulated second.
         self.delivered_bits = {"ul": 0, "dl": 0}
@@ -70,7 +70,7 @@ class NetsimFederate(Federate):
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "packet":
-            raise ValueError(f"netsim: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
         if msg.t_us % self.slot_us:
             raise ValueError(f"netsim: packet from {msg.src} enters at {msg.t_us} us, not a slot boundary")
         b = msg.body
@@ -132,7 +132,7 @@ class NetsimFederate(Federate):
             metrics.PACKET_BYTES.labels(p.direction).inc(p.size_bytes)
             self.delivered_bits[p.direction] += 8 * p.size_bytes
             metrics.PACKET_LATENCY.labels(p.direction).observe((o.deliver_us - p.enqueue_us) / 1e6)
-        self.records.append({
+        self.packets.append({
             "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": p.direction,
             "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": o.deliver_us,
             "latency_us": None if o.deliver_us is None else o.deliver_us - p.enqueue_us,
@@ -140,6 +140,6 @@ class NetsimFederate(Federate):
         })
 
     def finish(self, reason: str) -> dict[str, Any]:
-        write_table(self.results_dir / "packets.parquet", self.records)
-        return {"packets": len(self.records), "model": self.scenario.netsim.model,
+        return {"packets": self.packets.rows_written + self.packets.buffered,
+                "model": self.scenario.netsim.model,
                 **_flat(self.cell.stats())}

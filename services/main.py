@@ -1,18 +1,36 @@
 """Entry point of every federate process: ``python -m services.main <role> --name ... ``.
 
 Connects to the run's zenoh router, builds the federate of the given role and serves the window
-protocol until the coordinator stops the run. Exit code 0 on a clean stop, 1 on a failure.
+protocol until the coordinator stops the run. Exit code 0 on a clean stop, 1 on a failure, 3 when
+the coordinator went away.
+
+The process never outlives its coordinator, although it runs in a session of its own (so that
+stopping a run can signal its whole process group): the coordinator's liveliness token vanishing
+(both runtimes) or the death of the parent process (``prctl(PR_SET_PDEATHSIG)`` on Linux, when
+the coordinator started it directly and said so in ``COSIM5G_PARENT_PID``) makes the federate
+write its records and leave; SIGTERM does the same. Should it be stuck, it is ended
+``ORPHAN_GRACE_S`` later regardless.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
+import ctypes.util
 import logging
+import os
+import signal
 import sys
+import threading
 from pathlib import Path
+from types import FrameType
 
-from services.common.federate import Federate, FederateContext
+from services.common.federate import EXIT_ORPHANED, Federate, FederateContext
 from services.common.scenario import ScenarioError, load_scenario
+
+PARENT_PID_ENV = "COSIM5G_PARENT_PID"
+ORPHAN_GRACE_S = 3.0  # time to write the last records once the coordinator is gone
+_PR_SET_PDEATHSIG = 1
 
 
 def federate_class(role: str) -> type[Federate]:
@@ -41,6 +59,68 @@ def federate_class(role: str) -> type[Federate]:
 ROLES = ("physics", "camera", "edge", "robot", "netsim", "loops")
 
 
+def set_parent_death_signal(sig: int) -> bool:
+    """Ask the kernel to send ``sig`` to this process when its parent dies (Linux only); whether
+    it could."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        return int(libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+class Lifeline:
+    """Ends this process when its coordinator is gone: first asks the federate to leave (write
+    its records), then exits hard after ``grace_s`` whatever the federate is doing."""
+
+    def __init__(self, grace_s: float = ORPHAN_GRACE_S) -> None:
+        self.grace_s = grace_s
+        self.federate: Federate | None = None
+        self.reason: str | None = None
+        self._armed = threading.Lock()
+
+    def lost(self, reason: str) -> None:
+        """The coordinator is gone (any thread, or a signal handler)."""
+        if not self._armed.acquire(blocking=False):
+            return  # already leaving
+        self.reason = reason
+        sys.stderr.write(f"leaving: {reason}\n")  # one write: other threads log to this stream too
+        sys.stderr.flush()
+        timer = threading.Timer(self.grace_s, os._exit, (EXIT_ORPHANED,))
+        timer.daemon = True
+        timer.start()
+        if self.federate is not None:
+            self.federate.abandon(reason)
+
+    def attach(self, federate: Federate) -> None:
+        """From now on a loss makes ``federate`` leave; a loss before this ends the process."""
+        self.federate = federate
+        federate.on_orphaned = self.lost
+        if self.reason is not None:
+            federate.abandon(self.reason)
+
+    def on_signal(self, signum: int, frame: FrameType | None) -> None:
+        if self.federate is None:  # nothing recorded yet: leave at once
+            sys.exit(EXIT_ORPHANED)
+        parent = os.environ.get(PARENT_PID_ENV)
+        if parent and str(os.getppid()) != parent:  # the parent-death signal
+            self.lost(f"the coordinator (pid {parent}) died")
+        else:
+            self.lost(f"received {signal.Signals(signum).name}")
+
+    def watch_parent(self) -> None:
+        """Leave when the coordinator that started this process dies. The parent may already be
+        gone by the time the death signal is set up: compare with the pid it announced."""
+        expected = os.environ.get(PARENT_PID_ENV)
+        if not expected:
+            return  # not started by a coordinator directly (containers: tini is the parent)
+        set_parent_death_signal(signal.SIGTERM)
+        if str(os.getppid()) != expected:
+            self.lost(f"the coordinator (pid {expected}) exited before this federate started")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="services.main", description=__doc__)
     ap.add_argument("role", choices=ROLES)
@@ -52,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {args.name} %(levelname)s %(name)s: %(message)s")
+    lifeline = Lifeline()
+    signal.signal(signal.SIGTERM, lifeline.on_signal)
+    lifeline.watch_parent()
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -65,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     bus = ZenohBus(args.endpoint, mode="client")
     ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results))
     fed = federate_class(args.role)(ctx, bus)
+    lifeline.attach(fed)
     try:
         code = fed.serve()
     except Exception:

@@ -1,9 +1,18 @@
-"""The platform's real compute jobs, runnable alone for calibration: frame compression (camera),
-pose estimation (Edge), a control step (robot) and a pure-Python CPU-bound reference.
+"""The platform's real compute jobs, runnable alone for calibration, each as its federate runs it:
+frame compression (camera: sensor model applied, then the scenario's codec), pose estimation
+(Edge: decode + the scenario's estimator), a control step (robot), the host-speed scoring mix
+and a pure-Python CPU-bound reference (``spin``).
 
-``python -m services.workloads --reps N`` prints one JSON object: per workload, the CPU time and
-wall time of each repetition (ms). ``coordinator.calibrate`` runs it on the host and inside
-CPU-limited containers.
+``python -m services.workloads --cpus C --jobs N`` runs every workload N times through a
+``ComputeNode`` of C cpus in ``cpu`` timing, interleaved job by job (spin, compress, pose, ...,
+then again) so that a drift of the host's speed hits every workload alike, and prints one JSON
+object (last line of stdout): this process's environment, its measured host score, the idle-wake penalty of its core (see
+``idle_wake_penalty``) and, per
+workload, per job: the CPU time charged to the job (its thread + library workers), the thread's
+own share, the process CPU clock (every thread: what jobs were charged before), wall time, the
+emulated duration, CFS throttling (time and throttled periods) and involuntary context switches.
+Durations use the reference core's score (scale 1), so they are the job's own CPU time over
+cpus. ``coordinator.calibrate`` runs it with and without CPU quotas, in both runtimes.
 """
 
 from __future__ import annotations
@@ -11,87 +20,190 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+WORKLOADS = ("spin", "compress", "pose", "control", "score")
+
 
 def _spin() -> int:
-    """About 70 ms of pure-Python arithmetic on a desktop core: the CPU-bound reference job."""
+    """About 50 ms of pure-Python arithmetic on a server core: the CPU-bound reference job (its
+    working set fits the L1 cache, so its CPU time follows the core's clock, not the caches)."""
     acc = 0
-    for i in range(1_500_000):
+    for i in range(600_000):
         acc = (acc + i * i) % 1_000_003
     return acc
 
 
-def build_jobs() -> dict[str, Callable[[], Any]]:
-    """Each workload as a closure over inputs prepared once (rendering is not timed)."""
-    import cv2
+def idle_wake_penalty(pairs: int = 30, idle_s: float = 0.010) -> float:
+    """Median, over pairs, of the thread CPU time of a 2 ms ``spin``-like loop run right after
+    ``idle_s`` of sleep over the same loop run right after the thread was busy.
 
+    The loop's working set fits the L1 cache, so a ratio above 1 is the core running slower after
+    it idled (clock ramping up, idle states, a hypervisor's scheduling), which is what a node
+    throttled by its CPU quota meets at the start of every period."""
+    import statistics
+
+    def loop(n: int) -> int:
+        acc = 0
+        for i in range(n):
+            acc = (acc + i * i) % 1_000_003
+        return acc
+
+    loop(50_000)
+    ratios = []
+    for i in range(pairs):
+        cpu = {}
+        for after_idle in (True, False) if i % 2 else (False, True):
+            if after_idle:
+                time.sleep(idle_s)
+            else:
+                loop(50_000)
+            t0 = time.thread_time_ns()
+            loop(20_000)
+            cpu[after_idle] = time.thread_time_ns() - t0
+        ratios.append(cpu[True] / max(cpu[False], 1))
+    return statistics.median(ratios)
+
+
+def build_jobs(frames: int = 4) -> dict[str, Callable[[], Any]]:
+    """Each workload as a closure over inputs prepared once (rendering and the sensor model are
+    not timed, as in the federates); ``frames`` rendered captures are cycled through."""
     from services.camera.codec import decode_frame, encode_frame
+    from services.camera.sensor import sense, sensor_for
+    from services.common import host_speed
     from services.common.scenario import parse_scenario
     from services.common.seeding import rng
-    from services.edge.estimator import ClassicalEstimator
+    from services.edge.estimator import make_estimator
     from services.physics.cell_geometry import CameraIntrinsics
     from services.physics.federate import sensor_depth_mm
     from services.physics.scene import SERVO_LAG_S
     from services.physics.world import World
     from services.robot.controller import PickController
 
-    cv2.setNumThreads(1)
     sc = parse_scenario({"loops": 1})
+    cam = sc.camera
     world = World(sc)
     world.spawn(0)
-    world.advance_to(1_500_000)
-    rgb, depth = world.render(0, sc.camera.width_px, sc.camera.height_px)
-    assert depth is not None
-    depth_mm = sensor_depth_mm(depth, sc.camera.depth_noise_mm, rng(sc.seed, "workloads"))
-    frame = encode_frame(rgb, depth_mm, sc.camera.jpeg_quality)
-    est = ClassicalEstimator(CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg),
-                             sc.cell.object_size_m)
+    sensor, noise = sensor_for(cam), rng(sc.seed, "workloads/sensor")
+    captures = []
+    for i in range(frames):
+        world.advance_to(1_500_000 + i * 100_000)
+        rgb, depth = world.render(0, cam.width_px, cam.height_px)
+        assert depth is not None
+        captures.append(sense(sensor, rgb, sensor_depth_mm(depth, cam.depth_noise_mm, noise), noise))
+    encoded = [encode_frame(rgb, d, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation)
+               for rgb, d in captures]
+    est, _ = make_estimator(sc.edge.estimator, CameraIntrinsics(cam.width_px, cam.height_px, cam.fovy_deg),
+                            sc.cell.object_size_m)
     ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
     ctl.on_estimate([{"id": o["task_id"], "t_us": 1_500_000, "p": o["p"], "v": o["v"]}
                      for o in world.objects(0)])
     ctl.on_state(*world.joint_state(0).values())
-    tick = [1_500_000]
+    state = {"tick": 1_500_000, "frame": 0}
+
+    def compress() -> bytes:
+        rgb, depth = captures[state["frame"] % frames]
+        state["frame"] += 1
+        return encode_frame(rgb, depth, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation)
+
+    def pose() -> Any:
+        state["frame"] += 1
+        return est.detect(*decode_frame(encoded[state["frame"] % frames]))
 
     def control() -> Any:
-        tick[0] += sc.robot.control_period_us
-        return ctl.step(tick[0])
+        state["tick"] += sc.robot.control_period_us
+        return ctl.step(state["tick"])
 
+    return {"spin": _spin, "compress": compress, "pose": pose, "control": control,
+            "score": host_speed.run_mix}
+
+
+def _throttled_periods() -> int | None:
+    """CFS periods in which this process's cgroup was throttled so far (None: not visible)."""
+    from services.common.compute import read_cpu_stat
+
+    stat = read_cpu_stat()
+    return None if stat is None else stat.get("nr_throttled")
+
+
+def measure(cpus: float | None, jobs: int, only: list[str] | None = None) -> dict[str, Any]:
+    """Run the workloads ``jobs`` times each on a node of ``cpus`` (None: no limit, 1 cpu)."""
+    import cv2
+
+    from services.common import host_speed
+    from services.common.compute import ComputeNode, CpuSample, ThreadCpuClock, read_cpu_quota
+    from services.common.scenario import NodeProfile
+    from services.common.seeding import rng
+
+    class Recording(ThreadCpuClock):
+        last = CpuSample(0)
+
+        def stop(self, token: Any) -> CpuSample:
+            self.last = super().stop(token)
+            return self.last
+
+    clock = Recording()
+    ref = host_speed.reference()
+    profile = NodeProfile(cpus=cpus or 1.0, timing="cpu")
+    node = ComputeNode("calibrate", profile, rng(0, "calibrate"), clock=clock,
+                       host=host_speed.HostScore(score=ref.score, source="injected"),
+                       probe=lambda: ref.score)
+    cv2.setNumThreads(node.threads)  # as the federates do: the pools at the node's cores
+    host = host_speed.measure()
+    selected = {k: v for k, v in build_jobs().items() if not only or k in only}
+    for job in selected.values():  # warm caches, lazy imports and pools
+        job()
+        job()
+    out: dict[str, list[dict[str, Any]]] = {name: [] for name in selected}
+    names = list(selected)
+    for j in range(jobs):
+        for k in range(len(names)):
+            name = names[(j + k) % len(names)]  # rotate the order: no workload always follows another
+            periods0 = _throttled_periods()
+            ru0 = resource.getrusage(resource.RUSAGE_THREAD)
+            p0 = time.process_time_ns()
+            node.run(name, 0, selected[name])
+            p1 = time.process_time_ns()
+            ru1 = resource.getrusage(resource.RUSAGE_THREAD)
+            periods1 = _throttled_periods()
+            rec, sample = node.records[-1], clock.last
+            out[name].append({
+                "cpu_us": rec.cpu_us, "thread_us": sample.own_ns // 1000,
+                "helper_us": sum(sample.helpers_ns) // 1000, "process_us": (p1 - p0) // 1000,
+                "wall_us": rec.wall_us, "duration_us": rec.duration_us,
+                "throttled_us": rec.throttled_us,
+                "throttled_periods": None if periods0 is None or periods1 is None else periods1 - periods0,
+                "nivcsw": ru1.ru_nivcsw - ru0.ru_nivcsw,
+            })
+            node.records.clear()
+    quota = read_cpu_quota()
     return {
-        "spin": _spin,
-        "compress": lambda: encode_frame(rgb, depth_mm, sc.camera.jpeg_quality),
-        "pose": lambda: est.detect(*decode_frame(frame)),
-        "control": control,
+        "env": {**host_speed.environment(), "cpus": cpus, "pid": os.getpid(),
+                "cpu_quota": None if quota is None else [quota.quota_us, quota.period_us],
+                "host_score": host.score, "host_components_ms": host.components_ms,
+                "cv2_threads": cv2.getNumThreads(), "idle_wake_penalty": idle_wake_penalty(),
+                "omp_num_threads": os.environ.get("OMP_NUM_THREADS")},
+        "workloads": out,
     }
 
 
-def measure(reps: int, only: list[str] | None = None) -> dict[str, dict[str, list[float]]]:
-    jobs = build_jobs()
-    out: dict[str, dict[str, list[float]]] = {}
-    for name, job in jobs.items():
-        if only and name not in only:
-            continue
-        job()  # warm caches and lazy imports
-        cpu, wall = [], []
-        for _ in range(reps):
-            c0, w0 = time.process_time_ns(), time.perf_counter_ns()
-            job()
-            cpu.append((time.process_time_ns() - c0) / 1e6)
-            wall.append((time.perf_counter_ns() - w0) / 1e6)
-        out[name] = {"cpu_ms": cpu, "wall_ms": wall}
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--reps", type=int, default=20)
-    ap.add_argument("--only", nargs="*", help="workload names (default: all)")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cpus", type=float, default=None, help="node cpus (default: no limit, as 1 cpu)")
+    ap.add_argument("--jobs", type=int, default=10, help="jobs per workload")
+    ap.add_argument("--only", nargs="*", choices=WORKLOADS, help="workload names (default: all)")
+    ap.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = ap.parse_args(argv)
-    print(json.dumps(measure(args.reps, args.only)))
+    result = json.dumps(measure(args.cpus, args.jobs, args.only))
+    if args.out:
+        args.out.write_text(result + "\n")
+    print(result)
     return 0
 
 

@@ -16,7 +16,6 @@ from services.camera.sensor import sense, sensor_for
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
-from services.common.tables import write_table
 
 
 class CameraFederate(Federate):
@@ -25,14 +24,17 @@ class CameraFederate(Federate):
     def setup(self) -> None:
         self.loop = int(self.name.rsplit("-", 1)[1])
         self.cpu = ComputeNode(self.name, self.scenario.nodes.camera, self.rng("compute"))
+        self.record_jobs(self.cpu)
+        self.frames = self.table("frames")
+        self.frames_kept = 0
+        self.bytes_kept = 0
         self.keep_rng = self.rng("pdp")
         self.pdp = 1.0
         self.pdb_us: int | None = None
-        self.frames: list[dict[str, Any]] = []
         self.frame_id = 0
         self.sensor = sensor_for(self.scenario.camera)
         self.sensor_rng = self.rng("sensor")
-        cv2.setNumThreads(1)  # one emulated core: keep OpenCV from spreading a job over threads
+        cv2.setNumThreads(self.cpu.threads)  # OpenCV at the node's cores: one where cpus <= 1
 
     def on_message(self, msg: Message) -> None:
         if msg.kind == "frame":
@@ -41,7 +43,7 @@ class CameraFederate(Federate):
             self.pdp = float(msg.body["pdp"])
             self.pdb_us = msg.body.get("pdb_us")
         else:
-            raise ValueError(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
 
     def _on_frame(self, msg: Message) -> None:
         sc = self.scenario
@@ -50,8 +52,8 @@ class CameraFederate(Federate):
         keep = bool(self.keep_rng.random() < self.pdp)
         row: dict[str, Any] = {"loop": self.loop, "frame_id": fid, "capture_us": msg.body["capture_us"],
                                "pdp": self.pdp, "kept": keep, "bytes": 0, "packets": 0, "ready_us": None}
-        self.frames.append(row)
         if not keep:
+            self.frames.append(row)
             return
         w, h = int(msg.body["w"]), int(msg.body["h"])
         blob = msg.blob or b""
@@ -62,13 +64,16 @@ class CameraFederate(Federate):
         cam = sc.camera
         data, ready = self.cpu.run("compress", self.now, encode_frame, rgb, depth, cam.jpeg_quality,
                                    cam.depth_codec, cam.depth_decimation)
-        row["bytes"], row["ready_us"] = len(data), ready
+        # The packet count follows from the size alone: the row is complete now.
+        row.update(bytes=len(data), ready_us=ready, packets=len(split_packets(len(data), cam.mtu_bytes)))
+        self.frames.append(row)
+        self.frames_kept += 1
+        self.bytes_kept += len(data)
         self.schedule(ready, self._transmit, fid, msg.body["capture_us"], data)
 
     def _transmit(self, fid: int, capture_us: int, data: bytes) -> None:
         sc = self.scenario
         sizes = split_packets(len(data), sc.camera.mtu_bytes)
-        self.frames[fid]["packets"] = len(sizes)
         enter = slot_after(self.now, sc.netsim.slot_us)
         offset = 0
         for idx, size in enumerate(sizes):
@@ -82,8 +87,7 @@ class CameraFederate(Federate):
             }, chunk)
 
     def finish(self, reason: str) -> dict[str, Any]:
-        write_table(self.results_dir / "tables" / f"frames-{self.name}.parquet", self.frames)
-        write_table(self.results_dir / "tables" / f"jobs-{self.name}.parquet", self.cpu.record_dicts())
-        kept = [f for f in self.frames if f["kept"]]
-        return {"frames": len(self.frames), "frames_kept": len(kept),
-                "bytes_per_frame": (sum(f["bytes"] for f in kept) / len(kept)) if kept else 0.0}
+        kept = self.frames_kept
+        return {"frames": self.frame_id, "frames_kept": kept,
+                "bytes_per_frame": self.bytes_kept / kept if kept else 0.0,
+                "compute_speed": self.cpu.speed_summary(self.now)}

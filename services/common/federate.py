@@ -6,6 +6,17 @@ to it so far (count-based barrier), then processes every input and internal even
 cumulative count of messages it sent per destination and its next event time. Every message it
 sends must be delivered at or after the end of the current window; breaking that is a bug and
 fails the federate at once. Each processed and sent event feeds the federate's trace hash.
+
+A message the federate cannot handle (unknown kind, missing field, undecodable bytes) fails it with
+an error naming the federate and the message kind, reported to the coordinator in ``done``.
+
+Records stream to disk while the run goes (``services.common.tables``): a federate appends rows
+to its tables, which are written in bounded batches, at the latest every ``FLUSH_EVERY_US`` of
+simulated time, and closed when it stops or fails.
+
+A federate never outlives its coordinator: it watches the coordinator's liveliness token and
+leaves (after writing its records) when the token vanishes, or when none appeared within
+``COORDINATOR_WAIT_S`` of connecting.
 """
 
 from __future__ import annotations
@@ -15,27 +26,51 @@ import heapq
 import logging
 import os
 import queue
+import resource
+import sys
 import time
 import traceback
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 
 from services.common import keys, metrics
 from services.common.bus import Bus
-from services.common.messages import Advance, Done, Message, Ready, Stop, Stopped
+from services.common.messages import Advance, Done, Message, MessageError, Ready, Stop, Stopped
 from services.common.scenario import Scenario
 from services.common.seeding import rng
+from services.common.tables import FLUSH_EVERY_US, TABLES, TableWriter, part_path
+
+if TYPE_CHECKING:
+    from services.common.compute import ComputeNode
 
 log = logging.getLogger(__name__)
 
 
 class CausalityError(RuntimeError):
     """A federate tried to deliver a message inside the current window or in the past."""
+
+
+class MessageRejected(ValueError):
+    """A message the federate cannot handle: unexpected kind or malformed body."""
+
+
+EXIT_FAILED = 1
+EXIT_ORPHANED = 3  # the coordinator vanished: records written, nobody to report to
+# The coordinator's token must be seen this soon after connecting (it exists before any federate
+# starts); a federate that never sees it was started for a run that is already gone.
+COORDINATOR_WAIT_S = 10.0
+_POLL_S = 0.5
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
 
 
 @dataclass(frozen=True)
@@ -83,6 +118,13 @@ class Federate:
         self._events = 0
         self._stopped = False
         self._busy_s = 0.0  # wall time spent processing windows: where a slow run's time goes
+        self._tables: dict[str, TableWriter] = {}
+        self._job_nodes: list[ComputeNode] = []
+        self._next_flush_us = FLUSH_EVERY_US
+        self._coordinator_seen = False
+        # Called (from any thread) when the coordinator is lost, with the reason: the process
+        # entry point arms a hard exit there, in case the federate is stuck in a window.
+        self.on_orphaned: Callable[[str], None] | None = None
 
     # ---- for subclasses -------------------------------------------------------------------
     def setup(self) -> None:
@@ -92,8 +134,71 @@ class Federate:
         """Handle one data message at ``self.now == msg.t_us``."""
 
     def finish(self, reason: str) -> dict[str, Any]:
-        """Write results; return a summary for the coordinator (numbers, strings)."""
+        """Append the last records; return a summary for the coordinator (numbers, strings)."""
         return {}
+
+    def close(self) -> None:
+        """Release what must be released in the serving thread (e.g. a GL context), on every way
+        out of ``serve``."""
+
+    def collect_records(self) -> None:
+        """Move records kept elsewhere (e.g. in a model) into the tables; called before every
+        flush and before ``finish``."""
+
+    # ---- records ------------------------------------------------------------------------------
+    def table(self, name: str) -> TableWriter:
+        """This federate's writer of the run table ``name`` (one of ``tables.TABLES``)."""
+        writer = self._tables.get(name)
+        if writer is None:
+            if name not in TABLES:
+                raise KeyError(f"{self.name}: no run table {name!r} (tables: {', '.join(TABLES)})")
+            writer = TableWriter(part_path(self.results_dir, name, self.name), TABLES[name],
+                                 name, lambda: self.now)
+            self._tables[name] = writer
+        return writer
+
+    def record_jobs(self, *nodes: ComputeNode) -> None:
+        """Stream the job records of ``nodes`` into the ``jobs`` table."""
+        self._job_nodes.extend(nodes)
+        self.table("jobs")
+
+    def _drain_jobs(self) -> None:
+        if not self._job_nodes:
+            return
+        jobs = self.table("jobs")
+        for node in self._job_nodes:
+            if node.records:
+                jobs.extend(node.record_dicts())
+                node.records.clear()
+
+    def flush_records(self) -> None:
+        """Write every table's buffered rows (a batch each): complete up to the window end."""
+        self.collect_records()
+        self._drain_jobs()
+        for writer in self._tables.values():
+            writer.flush(self.window_end)
+
+    def _close_records(self, collect: bool = True, upto_us: int | None = None) -> None:
+        """Write what is left and close every table; each table's error is logged, not raised,
+        so that one broken table does not cost the others their rows. ``upto_us``: how far the
+        records go (default: the last event processed)."""
+        if collect:
+            try:
+                self.collect_records()
+            except Exception:
+                log.exception("%s: collecting the last records failed", self.name)
+        try:
+            self._drain_jobs()
+        except Exception:
+            log.exception("%s: collecting the last job records failed", self.name)
+        for name, writer in self._tables.items():
+            try:
+                writer.close(upto_us)
+            except Exception:
+                log.exception("%s: closing table %s failed", self.name, name)
+
+    def records_written(self) -> dict[str, int]:
+        return {name: w.rows_written for name, w in sorted(self._tables.items())}
 
     def rng(self, component: str) -> Any:
         """The named random stream ``<federate>/<component>`` of this run."""
@@ -146,26 +251,60 @@ class Federate:
             self.bus.subscribe(keys.inbox(run, plane, self.name), self._enqueue("data"))
         self.bus.subscribe(keys.advance(run), self._enqueue("advance"))
         self.bus.subscribe(keys.stop(run), self._enqueue("stop"))
+        self.bus.watch_liveliness(keys.coordinator_alive(run), self._on_coordinator)
         self.bus.declare_token(keys.alive(run, self.name))
+
+    def _on_coordinator(self, key: str, alive: bool) -> None:
+        if alive:
+            self._coordinator_seen = True
+        else:
+            self.abandon("the coordinator's liveliness token vanished (coordinator died or "
+                         "disconnected)")
+
+    def abandon(self, reason: str) -> None:
+        """Leave as soon as the current window is over: write the records, exit. Thread-safe
+        (called from transport threads and signal handlers)."""
+        self._inbox.put(("abandon", reason, b""))
+        if self.on_orphaned is not None:
+            self.on_orphaned(reason)
 
     def serve(self) -> int:
         """Run the federate until the coordinator stops it; returns a process exit code."""
+        try:
+            return self._serve()
+        finally:
+            self.close()
+
+    def _serve(self) -> int:
         run = self.ctx.run_id
         self.connect()
         self.setup()
         self.bus.publish(keys.ready(run, self.name), Ready(federate=self.name, pid=os.getpid()).encode())
         pending: Advance | None = None
+        wait_until = time.monotonic() + COORDINATOR_WAIT_S
         while True:
-            kind, key, payload = self._inbox.get()
-            if kind == "data":
-                msg = Message.decode(payload)
-                heapq.heappush(self._heap, (msg.t_us, msg.src, msg.seq, _MESSAGE, msg))
-                self._received_by_window[msg.window] += 1
-            elif kind == "advance":
-                pending = Advance.decode(payload)
-            elif kind == "stop":
-                stop = Stop.decode(payload)
-                return self._stop(stop.reason, stop.t_us)
+            try:
+                kind, key, payload = self._inbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if not self._coordinator_seen and time.monotonic() > wait_until:
+                    self.abandon(f"no coordinator token ({keys.coordinator_alive(run)}) within "
+                                 f"{COORDINATOR_WAIT_S:.0f} s of connecting")
+                continue
+            if kind == "abandon":
+                return self._leave(key)
+            try:
+                if kind == "data":
+                    msg = Message.decode(payload)
+                    heapq.heappush(self._heap, (msg.t_us, msg.src, msg.seq, _MESSAGE, msg))
+                    self._received_by_window[msg.window] += 1
+                elif kind == "advance":
+                    pending = Advance.decode(payload)
+                elif kind == "stop":
+                    stop = Stop.decode(payload)
+                    return self._stop(stop.reason, stop.t_us)
+            except (MessageError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+                what = "data message" if kind == "data" else f"{kind} message"
+                return self._fail(pending, f"{self.name}: undecodable {what} on {key}: {exc}")
             if pending is not None and self._received_before(pending.window) >= pending.expected_in.get(self.name, 0):
                 try:
                     t0 = time.perf_counter()
@@ -173,13 +312,25 @@ class Federate:
                     self._busy_s += time.perf_counter() - t0
                 except Exception as exc:
                     log.error("window %d failed:\n%s", pending.window, traceback.format_exc())
-                    done = Done(federate=self.name, window=pending.window, t_end_us=pending.t_end_us,
-                                sent_to={}, next_event_us=None, earliest_sent_us=None,
-                                error=f"{type(exc).__name__}: {exc}")
-                    self.bus.publish(keys.done(run, self.name), done.encode())
-                    return 1
+                    return self._fail(pending, f"{type(exc).__name__}: {exc}")
                 self.bus.publish(keys.done(run, self.name), done.encode())
                 pending = None
+
+    def _fail(self, pending: Advance | None, error: str) -> int:
+        """Report ``error`` to the coordinator as this window's ``done``, keep the records."""
+        window = pending.window if pending is not None else self._window
+        t_end = pending.t_end_us if pending is not None else self.window_end
+        done = Done(federate=self.name, window=window, t_end_us=t_end, sent_to={}, next_event_us=None,
+                    earliest_sent_us=None, error=error)
+        self.bus.publish(keys.done(self.ctx.run_id, self.name), done.encode())
+        self._close_records()
+        return EXIT_FAILED
+
+    def _leave(self, reason: str) -> int:
+        """The coordinator is gone: write what was recorded up to now and exit."""
+        log.warning("%s leaves at %d us: %s", self.name, self.now, reason)
+        self._stop(f"coordinator lost: {reason}", self.now)
+        return EXIT_ORPHANED
 
     def _received_before(self, window: int) -> int:
         """Data messages received that were sent in windows before ``window``."""
@@ -203,7 +354,14 @@ class Federate:
             if kind == _MESSAGE:
                 self._trace.update(b"R")
                 self._trace.update(msgpack.packb([t_us, src, seq, item.kind], use_bin_type=True))
-                self.on_message(item)
+                try:
+                    self.on_message(item)
+                except (CausalityError, MessageRejected):
+                    raise
+                except Exception as exc:
+                    raise MessageRejected(
+                        f"{self.name}: cannot handle {item.kind!r} message from {src} at {t_us} us: "
+                        f"{type(exc).__name__}: {exc}") from exc
             else:
                 fn, args = item
                 self._trace.update(b"E")
@@ -211,18 +369,31 @@ class Federate:
                 fn(*args)
         metrics.WINDOWS.labels(self.name).inc()
         metrics.EVENTS.labels(self.name).inc(self._events - events_before)
+        if adv.t_end_us >= self._next_flush_us:
+            self.flush_records()
+            self._next_flush_us = adv.t_end_us + FLUSH_EVERY_US
         next_event = heap[0][0] if heap else None
         return Done(federate=self.name, window=adv.window, t_end_us=adv.t_end_us,
                     sent_to=dict(self._sent_to), next_event_us=next_event,
                     earliest_sent_us=self._earliest_sent)
 
+    def unexpected(self, msg: Message) -> MessageRejected:
+        """The error for a message of a kind this federate does not take."""
+        return MessageRejected(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+
     def _stop(self, reason: str, t_us: int) -> int:
         if self._stopped:
             return 0
         self._stopped = True
-        summary = self.finish(reason)
+        try:
+            self.collect_records()
+            summary = self.finish(reason)
+        finally:
+            self._close_records(collect=False, upto_us=self.window_end)
         summary["busy_wall_s"] = round(self._busy_s, 3)
         summary["cpu_s"] = round(time.process_time(), 3)
+        summary["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        summary["records"] = self.records_written()
         record = Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
                          summary=summary)
         self.bus.publish(keys.stopped(self.ctx.run_id, self.name), record.encode())

@@ -75,6 +75,14 @@ def alive_all(run_id: str) -> str:
     return f"{ROOT}/{run_id}/alive/*"
 
 
+COORDINATOR = "coordinator"  # never a federate's name (services.common.scenario names them)
+
+
+def coordinator_alive(run_id: str) -> str:
+    """The coordinator's liveliness token: federates leave when it vanishes."""
+    return f"{ROOT}/{run_id}/alive/{COORDINATOR}"
+
+
 def last_segment(key: str) -> str:
     """The last segment of a key (the federate name in ctl and alive keys)."""
     return key.rsplit("/", 1)[-1]

@@ -30,12 +30,20 @@ class JobModel(Strict):
 
 
 class NodeProfile(Strict):
-    """A compute node's capacity and how its job durations are obtained (DESIGN 5)."""
+    """A compute node's capacity and how its job durations are obtained (DESIGN 5, docs/compute.md).
 
-    cpus: float = Field(gt=0, le=64, description="speed as a fraction of one host core")
+    ``cpus`` count reference cores, not this host's: each host scores its own speed against the
+    reference core (services/common/host_speed.py) and job CPU times are scaled by it, so one
+    scenario gives the same compute latencies on any host."""
+
+    cpus: float = Field(gt=0, le=64, description="speed in reference cores (services/common/data/"
+                        "reference_core.json): 0.25 is a quarter of the reference core on any host; "
+                        "in the docker runtime also the container's CPU quota, in host cores")
     mem_mb: int = Field(default=1024, ge=64, description="memory limit, MiB")
     timing: Literal["wall", "cpu", "model"] = Field(
-        default="cpu", description="wall: measured wall time; cpu: CPU time / cpus; model: seeded draw"
+        default="cpu", description="cpu: the job's own CPU time (its thread and library workers) "
+        "x host speed / cpus; wall: wall time in the node's CPU-limited cgroup (docker runtime; "
+        "refused for jobs shorter than 5 CFS periods); model: seeded draw (host-independent)"
     )
     model_us: dict[str, JobModel] = Field(
         default_factory=dict, description="per job kind, the duration distribution in model timing"
@@ -43,7 +51,8 @@ class NodeProfile(Strict):
 
 
 class Nodes(Strict):
-    """Compute node profiles; ``model`` timing falls back to the platform's measured job models."""
+    """Compute node profiles, in reference cores; ``model`` timing falls back to the platform's
+    measured job models."""
 
     camera: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=0.25, mem_mb=512),
                                 description="camera node profile")

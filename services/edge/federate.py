@@ -8,14 +8,12 @@ from __future__ import annotations
 from typing import Any
 
 import cv2
-import numpy as np
 
 from services.camera.codec import decode_frame, slot_after
 from services.common import metrics
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
-from services.common.tables import write_table
 from services.edge.estimator import Detection, make_estimator
 from services.edge.policy import LoopState, Qos, make_policy
 from services.edge.tracker import Tracker
@@ -32,6 +30,7 @@ class EdgeFederate(Federate):
     def setup(self) -> None:
         sc = self.scenario
         self.cpu = ComputeNode(self.name, sc.nodes.edge, self.rng("compute"))
+        self.record_jobs(self.cpu)
         k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
         # A learned estimator whose model cannot be loaded falls back to the classical one; the
         # warning is logged and the summary names the estimator that ran and why.
@@ -42,14 +41,17 @@ class EdgeFederate(Federate):
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
         self.qos_sent: dict[int, tuple[Qos, int]] = {}
-        self.frames: list[dict[str, Any]] = []
-        cv2.setNumThreads(1)
+        self.frames = self.table("frames")
+        self.frames_estimated = 0
+        self.frames_incomplete = 0
+        self.detections = 0
+        cv2.setNumThreads(self.cpu.threads)  # OpenCV at the node's cores: one where cpus <= 1
         if self.loops:
             self.schedule(0, self._policy_tick)
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "frame":
-            raise ValueError(f"edge: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
         b = msg.body
         key = (int(b["loop"]), int(b["frame_id"]))
         part = self.partial.setdefault(key, {"n": int(b["n"]), "chunks": {}, "first_us": self.now,
@@ -62,6 +64,8 @@ class EdgeFederate(Federate):
             self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],
                                 "complete_us": self.now, "ready_us": ready, "detections": len(detections),
                                 "estimator": self.estimator.name, "lost": False})
+            self.frames_estimated += 1
+            self.detections += len(detections)
             self.schedule(ready, self._publish, key[0], part["capture_us"], detections)
         self._drop_stale_partials()
 
@@ -75,6 +79,7 @@ class EdgeFederate(Federate):
             self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": p["capture_us"],
                                 "complete_us": None, "ready_us": None, "detections": 0,
                                 "estimator": self.estimator.name, "lost": True})
+            self.frames_incomplete += 1
 
     def _publish(self, loop: int, capture_us: int, detections: list[Detection]) -> None:
         tracker = self.trackers[loop]
@@ -109,10 +114,9 @@ class EdgeFederate(Federate):
         })
 
     def finish(self, reason: str) -> dict[str, Any]:
-        write_table(self.results_dir / "tables" / "frames-edge.parquet", self.frames)
-        write_table(self.results_dir / "tables" / "jobs-edge.parquet", self.cpu.record_dicts())
-        done = [f for f in self.frames if not f["lost"]]
-        return {"frames_estimated": len(done), "frames_incomplete": len(self.frames) - len(done),
+        done = self.frames_estimated
+        return {"frames_estimated": done, "frames_incomplete": self.frames_incomplete,
+                "compute_speed": self.cpu.speed_summary(self.now),
                 "estimator": self.estimator.name, "estimator_requested": self.scenario.edge.estimator,
                 "estimator_fallback_reason": self.estimator_fallback or "",
-                "mean_detections": float(np.mean([f["detections"] for f in done])) if done else 0.0}
+                "mean_detections": self.detections / done if done else 0.0}

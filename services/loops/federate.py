@@ -86,6 +86,8 @@ class LoopsFederate(Federate):
                 edge_cpu=ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute")),
                 robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
             )
+            lp = self.loops[i]
+            self.record_jobs(lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
         self.schedule(0, self._control_tick)
         self.schedule(0, self._policy_tick)
 
@@ -106,7 +108,7 @@ class LoopsFederate(Federate):
         elif msg.kind == "qos":
             lp.pdp, lp.pdb_us = float(b["pdp"]), b.get("pdb_us")
         else:
-            raise ValueError(f"loops: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
 
     # ---- camera side ----------------------------------------------------------------------------
     def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[dict]) -> None:
@@ -203,11 +205,17 @@ class LoopsFederate(Federate):
         if nxt < sc.duration_us:
             self.schedule(nxt, self._control_tick)
 
-    def finish(self, reason: str) -> dict[str, Any]:
+    def _write_loop_counters(self) -> list[dict[str, Any]]:
+        """Per-loop counters, one row per loop: rewritten whole (a few dozen rows) at each flush,
+        so that a run that fails keeps them as of its last flush."""
         rows = [{"loop": lp.index, "frames": lp.frames, "frames_kept": lp.frames_kept,
                  "ul_bytes": lp.bytes_sent, "picks": lp.ctl.picks} for lp in self.loops.values()]
         write_table(self.results_dir / "tables" / "abstract-loops.parquet", rows)
-        jobs = [r for lp in self.loops.values() for cpu in (lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
-                for r in cpu.record_dicts()]
-        write_table(self.results_dir / "tables" / "jobs-loops.parquet", jobs)
+        return rows
+
+    def collect_records(self) -> None:
+        self._write_loop_counters()
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        rows = self._write_loop_counters()
         return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows)}

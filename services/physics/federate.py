@@ -14,7 +14,6 @@ import numpy as np
 
 from services.common.federate import Federate
 from services.common.messages import Message
-from services.common.tables import write_table
 from services.physics.world import World, spawn_plan
 
 log = logging.getLogger(__name__)
@@ -45,6 +44,9 @@ class PhysicsFederate(Federate):
         self.frame_period = sc.frame_period_us
         self.noise_rng = self.rng("depth-noise")
         self.frames_sent = 0
+        self.tasks = self.table("tasks")
+        self.tasks_ended = 0
+        self.tasks_placed = 0
         self.snapshot_saved = False
         for i in range(sc.loops):
             for at, part in spawn_plan(sc, self.rng(f"spawn-c{i}"), self.step_us):
@@ -95,7 +97,7 @@ class PhysicsFederate(Federate):
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "command":
-            raise ValueError(f"physics: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
         self.world.advance_to(self.now)
         for cmd in msg.body["commands"]:
             self.world.command(int(cmd["loop"]), cmd["q"], bool(cmd["suction"]))
@@ -108,10 +110,23 @@ class PhysicsFederate(Federate):
         cv2.imwrite(str(out / "top-0.png"), cv2.cvtColor(top, cv2.COLOR_RGB2BGR))
         self.snapshot_saved = True
 
+    def _record_tasks(self, rows: list[dict[str, Any]]) -> None:
+        for r in rows:
+            self.tasks.append(r)
+            if r["outcome"] != "unfinished":
+                self.tasks_ended += 1
+                self.tasks_placed += bool(r["success"])
+
+    def close(self) -> None:
+        world = getattr(self, "world", None)  # absent when setup failed
+        if world is not None:
+            world.close()
+
+    def collect_records(self) -> None:
+        self._record_tasks(self.world.take_ended())
+
     def finish(self, reason: str) -> dict[str, Any]:
         self.world.advance_to(min(self.now, self.scenario.duration_us))
-        rows = self.world.finish()
-        write_table(self.results_dir / "tasks.parquet", rows)
-        done = [r for r in rows if r["outcome"] != "unfinished"]
-        return {"tasks": len(done), "placed": sum(r["success"] for r in done),
+        self._record_tasks(self.world.finish())
+        return {"tasks": self.tasks_ended, "placed": self.tasks_placed,
                 "frames_rendered": self.frames_sent}

@@ -439,12 +439,25 @@ class World:
             r.disable_depth_rendering()
         return rgb, dep
 
+    def take_ended(self) -> list[dict[str, Any]]:
+        """Rows of the tasks that ended since the last call, which ``tasks`` then forgets: a long
+        run keeps only the tasks in play (``finish`` gives the rest)."""
+        ended = [t for t in self.tasks if t.outcome is not None]
+        if ended:
+            self.tasks = [t for t in self.tasks if t.outcome is None]
+        return [t.row() for t in ended]
+
     def finish(self) -> list[dict[str, Any]]:
-        """Close open tasks as unfinished; all task rows."""
+        """Close open tasks as unfinished; the rows of every task not taken by ``take_ended``."""
         for c in self.cells:
             for task in c.active.values():
                 task.outcome, task.reason, task.end_us = "unfinished", "run ended", self.t_us
+        self.close()
+        return [t.row() for t in self.tasks]
+
+    def close(self) -> None:
+        """Release the renderer. Its GL context belongs to the thread that rendered: call this
+        there (a renderer left to the garbage collector fails on another thread)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-        return [t.row() for t in self.tasks]

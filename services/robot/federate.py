@@ -10,7 +10,6 @@ from typing import Any
 from services.common.compute import ComputeNode
 from services.common.federate import Federate
 from services.common.messages import Message
-from services.common.tables import write_table
 from services.physics.arm import SERVO_LAG_S
 from services.robot.controller import PickController
 
@@ -22,6 +21,7 @@ class RobotFederate(Federate):
         sc = self.scenario
         self.loop = int(self.name.rsplit("-", 1)[1])
         self.cpu = ComputeNode(self.name, sc.nodes.robot, self.rng("compute"))
+        self.record_jobs(self.cpu)
         self.ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
         self.estimates = 0
         self.schedule(0, self._tick)
@@ -33,7 +33,7 @@ class RobotFederate(Federate):
         elif msg.kind == "joint_state":
             self.ctl.on_state(msg.body["q"], msg.body["gripped"])
         else:
-            raise ValueError(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+            raise self.unexpected(msg)
 
     def _tick(self) -> None:
         sc = self.scenario
@@ -45,5 +45,5 @@ class RobotFederate(Federate):
             self.schedule(nxt, self._tick)
 
     def finish(self, reason: str) -> dict[str, Any]:
-        write_table(self.results_dir / "tables" / f"jobs-{self.name}.parquet", self.cpu.record_dicts())
-        return {"picks": self.ctl.picks, "estimates": self.estimates, "holds": self.ctl.holds}
+        return {"picks": self.ctl.picks, "estimates": self.estimates, "holds": self.ctl.holds,
+                "compute_speed": self.cpu.speed_summary(self.now)}

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from services.common.compute import ComputeNode
+from services.common.host_speed import HostScore, reference
 from services.common.scenario import JobModel, NodeProfile, PolicyConfig
 from services.common.seeding import rng
 from services.edge.policy import LoopState, make_policy
@@ -26,11 +28,14 @@ def test_model_timing_is_seeded_and_queues_jobs() -> None:
 
 
 def test_cpu_timing_scales_with_node_speed() -> None:
-    slow = ComputeNode("s", NodeProfile(cpus=0.25, timing="cpu"), rng(1, "s"))
+    # A host as fast as the reference core (injected): the duration is the job's CPU time / cpus.
+    ref = reference()
+    slow = ComputeNode("s", NodeProfile(cpus=0.25, timing="cpu"), rng(1, "s"),
+                       host=HostScore(score=ref.score, source="injected"), probe=lambda: ref.score)
     _, end = slow.run("job", 0, busy, 200_000)
     rec = slow.records[0]
     assert end == rec.duration_us
-    assert 3.0 < rec.duration_us / max(rec.cpu_us, 1) < 5.0  # ~1/0.25, parallelism folded in
+    assert rec.duration_us == pytest.approx(rec.cpu_us / 0.25, abs=5)  # one thread: 1 / cpus
 
 
 def test_policies_share_one_interface() -> None:

@@ -1,0 +1,140 @@
+"""Streamed record tables: bounded batches, parts readable up to a crash, merged with fixed columns."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import pytest
+
+from services.common import tables
+from services.common.bus import InMemoryBus, InMemoryHub
+from services.common.compute import JobRecord
+from services.common.federate import Federate, FederateContext
+from services.common.scenario import parse_scenario
+from services.common.tables import (
+    PACKETS,
+    PartInfo,
+    TableError,
+    TableWriter,
+    merge_parts,
+    part_path,
+    read_part,
+)
+
+
+def packet(i: int, lost: bool = False) -> dict[str, Any]:
+    return {"packet_id": i, "flow": "camera-0/video", "ue": "camera-0", "dir": "ul", "size_bytes": 1500,
+            "enqueue_us": 1000 * i, "deliver_us": None if lost else 1000 * i + 3000,
+            "latency_us": None if lost else 3000, "lost_cause": "channel" if lost else None}
+
+
+def read_all(path: Path) -> tuple[list[dict[str, Any]], PartInfo]:
+    info = PartInfo()
+    rows = [r for b in read_part(path, info) for r in b.to_pylist()]
+    return rows, info
+
+
+def test_rows_are_written_in_bounded_batches_and_the_part_closed(tmp_path: Path) -> None:
+    now = [0]
+    w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: now[0], max_rows=4)
+    for i in range(10):
+        now[0] = 1000 * i
+        w.append(packet(i, lost=i % 3 == 0))
+        assert w.buffered < 4  # what a federate holds in memory stays bounded
+    assert w.rows_written == 8
+    rows, info = read_all(w.path)  # readable while the writer is open: two full batches
+    assert [r["packet_id"] for r in rows] == list(range(8)) and not info.complete
+    w.close()
+    rows, info = read_all(w.path)
+    assert rows == [packet(i, lost=i % 3 == 0) for i in range(10)]
+    assert info.complete and info.rows == 10 and info.upto_us == 9000
+
+
+def test_a_part_cut_short_keeps_every_whole_batch(tmp_path: Path) -> None:
+    w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: 0, max_rows=5)
+    w.extend([packet(i) for i in range(12)])  # two batches on disk, two rows buffered
+    size = w.path.stat().st_size
+    w.flush()
+    data = w.path.read_bytes()
+    w.path.write_bytes(data[:size + (len(data) - size) // 2])  # the writer died mid-batch
+    rows, info = read_all(w.path)
+    assert [r["packet_id"] for r in rows] == list(range(10))
+    assert not info.complete and info.error and "cut short after 10 rows" in info.error
+
+
+def test_a_row_with_an_unknown_column_names_the_table_and_column(tmp_path: Path) -> None:
+    w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: 0)
+    w.append({**packet(0), "jitter_us": 4})
+    with pytest.raises(TableError, match="table packets: no column jitter_us"):
+        w.flush()
+    w = TableWriter(part_path(tmp_path, "packets", "edge"), PACKETS, "packets", lambda: 0)
+    w.append({**packet(1), "size_bytes": "large"})
+    with pytest.raises(TableError, match="table packets: a row does not fit"):
+        w.flush()
+
+
+def test_merge_gives_the_table_columns_for_parts_and_for_none(tmp_path: Path) -> None:
+    for fed, ids in (("camera-0", range(3)), ("edge", range(3, 5))):
+        w = TableWriter(part_path(tmp_path, "packets", fed), PACKETS, "packets", lambda: 7000)
+        w.extend([packet(i) for i in ids])
+        if fed == "camera-0":
+            w.close()
+        else:
+            w.flush()  # a federate that died after its last flush
+    summary = merge_parts(tmp_path, "packets")
+    assert summary["rows"] == 5
+    assert summary["parts"]["camera-0"] == {"rows": 3, "complete": True, "upto_s": 0.007}
+    assert summary["parts"]["edge"]["complete"] is False
+    merged = pq.read_table(tmp_path / "packets.parquet")
+    assert merged.schema.names == PACKETS.names
+    assert sorted(merged.column("packet_id").to_pylist()) == list(range(5))
+    assert not list((tmp_path / "tables").glob("*.arrows"))
+    assert merge_parts(tmp_path, "packets")["rows"] == 5  # merging again keeps what was merged
+    empty = merge_parts(tmp_path, "tasks")
+    assert empty == {"rows": 0, "parts": {}}
+    assert pq.read_table(tmp_path / "tasks.parquet").schema.names == tables.TASKS.names
+
+
+def test_the_jobs_table_has_every_field_of_a_job_record() -> None:
+    assert {f.name for f in dataclasses.fields(JobRecord)} == set(tables.JOBS.names)
+
+
+class Counter(Federate):
+    """Records one packet row per millisecond of simulated time."""
+
+    def setup(self) -> None:
+        self.rows = self.table("packets")
+        self.schedule(0, self.tick)
+
+    def tick(self) -> None:
+        self.rows.append(packet(self.now // 1000))
+        self.schedule(self.now + 1000, self.tick)
+
+
+def test_a_federate_flushes_every_few_simulated_seconds(tmp_path: Path) -> None:
+    from coordinator.conductor import Conductor
+
+    assert tables.FLUSH_EVERY_US // 1000 < tables.MAX_BATCH_ROWS  # flushed by time, not by rows
+    hub = InMemoryHub()
+    sc = parse_scenario({"duration_s": 10})
+    fed = Counter(FederateContext("netsim", "t1", sc, tmp_path), InMemoryBus(hub))
+    end_us = tables.FLUSH_EVERY_US + 500_000
+    conductor = Conductor(InMemoryBus(hub), "t1", ["netsim"], 1000, end_us, window_timeout_s=10)
+    thread = threading.Thread(target=fed.serve, daemon=True)
+    thread.start()
+    conductor.wait_ready(10)
+    conductor.run()
+    # Still running: the rows of the first FLUSH_EVERY_US are on disk, the rest buffered.
+    rows, info = read_all(part_path(tmp_path, "packets", "netsim"))
+    assert len(rows) == tables.FLUSH_EVERY_US // 1000 and info.upto_us == tables.FLUSH_EVERY_US
+    assert fed.rows.buffered == end_us // 1000 - len(rows)
+    stopped = conductor.stop("completed", timeout_s=10)
+    thread.join(10)
+    rows, info = read_all(part_path(tmp_path, "packets", "netsim"))
+    assert len(rows) == end_us // 1000 and info.complete
+    assert stopped["netsim"].summary["records"] == {"packets": end_us // 1000}
+    assert stopped["netsim"].summary["peak_rss_mb"] > 0
