@@ -8,7 +8,6 @@ host; ``experiments.ray_executor.RayExecutor`` spreads them over a Ray cluster.
 
 from __future__ import annotations
 
-import ctypes
 import json
 import os
 import signal
@@ -23,8 +22,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from experiments.points import Point
-
-PR_SET_PDEATHSIG = 1
+from services.main import set_parent_death_signal
 
 
 @dataclass
@@ -61,10 +59,7 @@ class Executor(Protocol):
 def _die_with_parent() -> None:
     """In the child before exec: SIGTERM when the sweep process dies (Linux), which the run turns
     into a clean cancel."""
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
+    set_parent_death_signal(signal.SIGTERM)
 
 
 def run_command(config_path: Path, runs_dir: Path, run_id: str, progress_file: Path | None = None) -> list[str]:
