@@ -44,12 +44,16 @@ run: $(BIN)/cosim5g ## run SCENARIO (default co_design) in the process runtime, 
 smoke: $(BIN)/cosim5g ## run the 2-loop smoke scenario in the process runtime
 	$(BIN)/cosim5g run configs/scenarios/smoke.yaml --results $(RESULTS)
 
-lint: $(BIN)/cosim5g ## ruff over the code
-	$(BIN)/ruff check coordinator services netsim experiments benchmarks tests
+PACKAGES := scenario fabric domain services netsim coordinator experiments training interfaces
 
-test: $(BIN)/cosim5g ## ruff, mypy, then every test (docker tests run when a Docker daemon answers)
-	$(BIN)/ruff check coordinator services netsim experiments benchmarks tests
-	$(BIN)/mypy coordinator services netsim experiments benchmarks
+lint: $(BIN)/cosim5g ## ruff over the code, and the layer contracts (import-linter, see pyproject.toml)
+	$(BIN)/ruff check $(PACKAGES) benchmarks tests
+	$(BIN)/lint-imports
+
+test: $(BIN)/cosim5g ## lint (ruff + layer contracts), mypy, then every test (docker tests run when a Docker daemon answers)
+	$(BIN)/ruff check $(PACKAGES) benchmarks tests
+	$(BIN)/lint-imports
+	$(BIN)/mypy $(PACKAGES) benchmarks
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 test-unit: $(BIN)/cosim5g ## fast unit tests only (in-memory bus)
@@ -101,13 +105,13 @@ install-train: $(BIN)/cosim5g ## add torch + onnx to .venv (several GB: PyPI's t
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray,train]'
 
 train-perception: install-train ## render the pose data set, train the Edge pose network (CPU), export pose.onnx, re-measure
-	$(BIN)/python -m services.edge.train.train --regenerate
-	$(BIN)/python -m services.edge.train.dataset --split test --episodes 10
+	$(BIN)/python -m training.perception.train --regenerate
+	$(BIN)/python -m training.perception.dataset --split test --episodes 10
 	$(BIN)/python -m benchmarks.perception_accuracy --record
-	$(BIN)/python -m services.camera.measure
+	$(BIN)/python -m training.frame_model
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
-	$(BIN)/python -m services.camera.measure
+	$(BIN)/python -m training.frame_model
 
 clean: ## remove results and caches (keeps .venv)
 	rm -rf results .pytest_cache .ruff_cache .mypy_cache

@@ -21,12 +21,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.camera.codec import decode_depth_delta_zlib, encode_depth_delta_zlib
-from services.camera.scenes import working_cell
-from services.camera.sensor import decimate_depth, sensor_for
-from services.common.scenario import parse_scenario
-from services.common.seeding import rng
-from services.physics.federate import sensor_depth_mm
+from domain.codec import decode_depth_delta_zlib, encode_depth_delta_zlib
+from domain.scenes import working_cell
+from domain.sensor import decimate_depth, sensor_depth_mm, sensor_for
+from fabric.seeding import rng
+from scenario.schema import parse_scenario
 
 ROOT = Path(__file__).parents[1]
 
@@ -97,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     table = "| decimation | depth px | codec | bytes / frame | encode ms (1 core) |\n|---:|---|---|---:|---:|\n"
     table += "\n".join(f"| {d} | {s[1]}x{s[0]} | {n} | {b:.0f} | {ms:.2f} |" for d, s, n, b, ms in rows)
     notes = (f"{args.frames} frames of the working cell at {w}x{h}, D435 sensor model on "
-             "(services/camera/sensor.py), CPU time of one thread on a shared 2-core host. "
+             "(domain/sensor.py), CPU time of one thread on a shared 2-core host. "
              "All codecs are exact (lossless); decimation is the camera's RealSense-style filter, "
              "applied before coding. Chosen: delta-zlib, the smallest codec that costs no more CPU "
              "than PNG level 1 (it costs less); JPEG 2000 is ~10% smaller again but costs several times the "

@@ -27,8 +27,8 @@ if str(ROOT) not in sys.path:  # runnable from a checkout without installing
 
 import numpy as np  # noqa: E402
 
-from netsim.nr.config import CALIBRATED_UL_CAPACITY_MBPS, NrConfig  # noqa: E402
 from netsim.standalone import run_uplink_cameras  # noqa: E402
+from scenario.nr import CALIBRATED_UL_CAPACITY_MBPS, NrConfig  # noqa: E402
 
 LOADS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.2)
 SWEEP_UES = 21

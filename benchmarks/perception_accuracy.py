@@ -1,7 +1,7 @@
 """Perception accuracy and cost (``python -m benchmarks.perception_accuracy``): the learned and the
 classical pose estimators on a held-out rendered test set.
 
-The test split (services/edge/train/dataset.py, seeds disjoint from training, wider ranges of
+The test split (training/perception/dataset.py, seeds disjoint from training, wider ranges of
 part size and light) is rendered if missing. For each estimator: detection rate over the parts in
 view (top face at least 80% visible), 3-D position error of the detected parts (median, p95,
 mm; also horizontal and vertical medians), false positives per frame, and the CPU time of one
@@ -16,10 +16,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from services.edge.estimator import make_estimator
-from services.edge.learned import DEFAULT_MODEL
-from services.edge.train import dataset as D
-from services.edge.train.evaluate import evaluate
+from domain.estimator import make_estimator
+from domain.pose_net import DEFAULT_MODEL
+from training.perception import dataset as D
+from training.perception.evaluate import evaluate
 
 ROOT = Path(__file__).parents[1]
 

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.common.scenario import parse_scenario
+from scenario.schema import parse_scenario
 from services.physics.ideal_loop import run_ideal
 
 ROOT = Path(__file__).parents[1]

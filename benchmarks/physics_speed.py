@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from services.common.scenario import Scenario, parse_scenario
+from domain.world import World
+from scenario.schema import Scenario, parse_scenario
 from services.physics.ideal_loop import run_ideal
-from services.physics.world import World
 
 ROOT = Path(__file__).parents[1]
 

@@ -18,9 +18,9 @@ from pathlib import Path
 from benchmarks.ticker import Ticker, context
 from coordinator.conductor import Conductor
 from coordinator.run import execute_run, free_port
-from services.common.bus import InMemoryBus, InMemoryHub
-from services.common.scenario import load_scenario
-from services.common.zenoh_bus import ZenohBus
+from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.zenoh_bus import ZenohBus
+from scenario.schema import load_scenario
 
 ROOT = Path(__file__).parents[1]
 W = 1000

@@ -104,7 +104,7 @@ def write(name: str, record: dict[str, Any], table: list[tuple[str, Any]]) -> No
 
 def soak(runs: int, docker_runs: int, duration_s: float, results: Path) -> int:
     from coordinator.run import execute_run
-    from services.common.scenario import load_scenario
+    from scenario.schema import load_scenario
 
     statuses: Counter[str] = Counter()
     reasons: Counter[str] = Counter()
@@ -173,7 +173,7 @@ def chaos_run(i: int, fault: str, runtime: str, rng: random.Random, results: Pat
     if fault == "oom":
         # The Edge's pose network and frames need far more than this: the node hits its limit.
         sets.append("nodes.edge.mem_mb=64")
-    cmd = [sys.executable, "-m", "coordinator.cli", "run", str(SMOKE), "--quiet", "--results", str(results),
+    cmd = [sys.executable, "-m", "interfaces.cli", "run", str(SMOKE), "--quiet", "--results", str(results),
            "--run-id", run_id, *[a for s in sets for a in ("--set", s)]]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     at_s = rng.uniform(2.0, 8.0)  # wall seconds after the run's first window

@@ -8,9 +8,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from services.common.bus import Bus
-from services.common.federate import Federate, FederateContext
-from services.common.scenario import parse_scenario
+from fabric.bus import Bus
+from fabric.federate import Federate, FederateContext
+from scenario.schema import parse_scenario
 
 
 class Ticker(Federate):
@@ -35,7 +35,7 @@ def context(name: str, run_id: str, window_us: int, end_us: int) -> FederateCont
 
 def main() -> int:
     name, run_id, endpoint, window_us, end_us = sys.argv[1:6]
-    from services.common.zenoh_bus import ZenohBus
+    from fabric.zenoh_bus import ZenohBus
 
     bus = ZenohBus(endpoint)
     try:

@@ -1,6 +1,6 @@
 """``make calibrate``: how faithful compute emulation is, measured on the real workloads.
 
-Every workload of ``services.workloads`` (spin, compress, pose, control and the host-speed scoring
+Every workload of ``domain.workloads`` (spin, compress, pose, control and the host-speed scoring
 mix) runs as jobs of a node of 1, 0.5 and 0.25 cpus, and of an unlimited node (the baseline), in
 interleaved rounds (round r visits the runtimes and the profiles in a rotated order, so a drift
 of the host's speed over minutes hits every cell alike), at least ``--rounds x --jobs`` jobs per
@@ -24,10 +24,12 @@ L1-resident loop right after 10 ms of idle vs right after busy: what a throttled
 every period).
 
 Runtimes: ``process`` (a plain process, no cgroup: there is no CPU limit, so wall / ideal is about
-cpus), ``docker`` (a container of the runtime image with the docker runtime's cgroup limits: CFS
-period 10 ms, quota cpus x period) and ``cgroup`` (a plain process in a cgroup with the docker
-runtime's limits, for a host that has no images yet; needs a writable cgroup hierarchy).
-``--runtime both`` is process + docker. Written to results/bench/calibrate.{md,json};
+cpus), ``docker`` (a container of the runtime image with the docker runtime's limits for a
+``cpu``-timed node: whole cores, ceil(cpus); its ``cpu-mode / ideal`` is what a run gets),
+``docker-wall`` (the limits of a ``wall``-timed node: CFS period 10 ms, quota cpus x period; its
+``wall / ideal`` is what a run gets) and ``cgroup`` (a plain process in a cgroup with the
+``wall`` limits, for a host that has no images yet; needs a writable cgroup hierarchy).
+``--runtime both`` is process + docker + docker-wall. Written to results/bench/calibrate.{md,json};
 ``--rebuild`` renders the report again from a saved calibrate.json.
 """
 
@@ -49,7 +51,7 @@ import numpy as np
 from coordinator.launcher import NodeLimits
 
 PROFILES = (1.0, 0.5, 0.25)
-RUNTIMES = ("process", "docker", "cgroup")
+RUNTIMES = ("process", "docker", "docker-wall", "cgroup")
 ROOT = Path(__file__).parents[1]
 BOOTSTRAP = 2000
 TARGET = 0.05  # cpu-mode / ideal should be within 5% of 1 (median)
@@ -70,7 +72,7 @@ def _last_json_line(text: str, where: str) -> dict[str, Any]:
 
 
 def _worker_argv(cpus: float | None, jobs: int, only: list[str] | None) -> list[str]:
-    argv = ["-m", "services.workloads", "--jobs", str(jobs)]
+    argv = ["-m", "domain.workloads", "--jobs", str(jobs)]
     if cpus is not None:
         argv += ["--cpus", repr(cpus)]
     if only:
@@ -156,17 +158,19 @@ def _read(path: Path) -> str:
 
 class DockerRunner:
     """The workloads in a container of the runtime image, with the docker runtime's cgroup limits
-    and environment (no BLAS thread setting: the docker runtime sets none)."""
+    and environment (no BLAS thread setting: the docker runtime sets none). ``timing`` is the
+    node's: ``cpu`` (whole cores, what `cpu`-mode figures are for) or ``wall`` (quota cpus x
+    period, what `wall` figures are for)."""
 
-    name = "docker"
-
-    def __init__(self, only: list[str] | None = None, source: bool = False) -> None:
+    def __init__(self, only: list[str] | None = None, source: bool = False, timing: str = "cpu") -> None:
         from docker.errors import ImageNotFound
 
         from coordinator.runtime_docker import RUNTIME_IMAGE, DockerRuntimeError, docker_client
 
         self.only = only
         self.source = source
+        self.timing = timing
+        self.name = "docker" if timing == "cpu" else f"docker-{timing}"
         self.image = RUNTIME_IMAGE
         try:
             self.client = docker_client()
@@ -191,9 +195,9 @@ class DockerRunner:
             environment=env, volumes=mounts,
             remove=True, read_only=True, tmpfs={"/tmp": "size=64m"}, cap_drop=["ALL"],
             security_opt=["no-new-privileges"], network_mode="none",
-            **cgroup_limits(NodeLimits(cpus=cpus, mem_mb=1024)),
+            **cgroup_limits(NodeLimits(cpus=cpus, mem_mb=1024, timing=self.timing)),
         )
-        return _last_json_line(raw.decode(), f"docker workloads (cpus={cpus})")
+        return _last_json_line(raw.decode(), f"{self.name} workloads (cpus={cpus})")
 
 
 RUNNERS: dict[str, type[ProcessRunner]] = {"process": ProcessRunner, "cgroup": CgroupRunner}
@@ -341,6 +345,12 @@ def render(meta: dict[str, Any], rows: list[dict[str, Any]], notes: list[str]) -
         if runtime == "process":
             lines += ["No cgroup: nothing limits the node's CPU, so wall / ideal is about cpus "
                       "(wall timing is refused there); cpu-mode / ideal is the check.", ""]
+        elif runtime == "docker":
+            lines += ["The limits of a `cpu`-timed node: whole cores, ceil(cpus); no job is throttled in "
+                      "mid-run. cpu-mode / ideal is the check; wall / ideal is about cpus.", ""]
+        elif runtime in ("docker-wall", "cgroup"):
+            lines += ["The limits of a `wall`-timed node: quota cpus x 10 ms period. wall / ideal is the "
+                      "check; cpu-mode / ideal shows what throttling in mid-job costs in CPU time.", ""]
         lines += ["| workload | cpus | n | unlimited CPU ms | ideal ms | cpu-mode / ideal | wall / ideal | "
                   "process clock / ideal (before) | throttled periods / job |",
                   "|---|---|---|---|---|---|---|---|---|"]
@@ -359,7 +369,7 @@ def render(meta: dict[str, Any], rows: list[dict[str, Any]], notes: list[str]) -
 
 
 def _reference_meta() -> dict[str, Any]:
-    from services.common import host_speed
+    from fabric import host_speed
 
     ref = host_speed.reference()
     return {"reference_score": ref.score, "reference_cpu_model": ref.env.get("cpu_model", ""),
@@ -370,9 +380,14 @@ def calibrate(runtimes: list[str], rounds: int, jobs: int, only: list[str] | Non
               log: Callable[[str], None] = print, source: bool = False,
               ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Run the rounds; (meta, per-job rows)."""
-    from services.common import host_speed
+    from fabric import host_speed
 
-    runners = [DockerRunner(only, source) if r == "docker" else RUNNERS[r](only) for r in runtimes]
+    def make_runner(name: str) -> Any:
+        if name.startswith("docker"):
+            return DockerRunner(only, source, "wall" if name == "docker-wall" else "cpu")
+        return RUNNERS[name](only)
+
+    runners = [make_runner(r) for r in runtimes]
     load_start = os.getloadavg()[0]
     rows: list[dict[str, Any]] = []
     scores: dict[str, list[float]] = {}
@@ -422,7 +437,7 @@ def write(out: Path, meta: dict[str, Any], jobs: list[dict[str, Any]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runtime", choices=[*RUNTIMES, "both"], default="both",
-                    help="where the workloads run (both: process and docker)")
+                    help="where the workloads run (both: process, docker and docker-wall)")
     ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds over runtimes and profiles")
     ap.add_argument("--jobs", type=int, default=6, help="jobs per workload, profile and round")
     ap.add_argument("--only", nargs="*", help="workload names (default: all)")
@@ -441,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
             jobs = [dict(zip(cols, r, strict=True)) for r in data["jobs"]["rows"]]
             meta = data["meta"]
         else:
-            runtimes = ["process", "docker"] if args.runtime == "both" else [args.runtime]
+            runtimes = ["process", "docker", "docker-wall"] if args.runtime == "both" else [args.runtime]
             if args.rounds * args.jobs < 30:
                 print(f"note: {args.rounds * args.jobs} jobs per cell (fewer than 30): a functional check, "
                       "not a calibration", file=sys.stderr)

@@ -18,9 +18,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from services.common import keys
-from services.common.bus import Bus
-from services.common.messages import Advance, Done, MessageError, Ready, Stop, Stopped
+from fabric import keys
+from fabric.bus import Bus
+from fabric.messages import Advance, Done, MessageError, Ready, Stop, Stopped
 
 
 class RunFailed(Exception):

@@ -15,10 +15,12 @@ from pathlib import Path
 
 @dataclass(frozen=True)
 class NodeLimits:
-    """A compute node's capacity: fraction of one host core, memory (None: unlimited)."""
+    """A compute node's capacity: fraction of one host core, memory (None: unlimited), and how its
+    jobs are timed (``wall``, ``cpu`` or ``model``), which decides how the docker runtime limits it."""
 
     cpus: float | None = None
     mem_mb: int | None = None
+    timing: str = "cpu"
 
 
 @dataclass(frozen=True)

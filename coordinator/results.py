@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from services.common.tables import TABLES, merge_parts, read_rows, write_table
+from fabric.tables import TABLES, merge_parts, read_rows, write_table
 
 
 def versions() -> dict[str, str]:
@@ -43,7 +43,7 @@ def merge_tables(run_dir: Path) -> dict[str, dict[str, Any]]:
     """Merge the federates' streamed parts of every run table (``tasks``, ``packets``, ``jobs``,
     ``frames``) into ``<table>.parquet``; a table nobody wrote to is written empty, with its
     columns. Per table: rows merged and, per federate, rows, simulated time recorded up to and
-    whether the federate closed its part (``services.common.tables.merge_parts``). Merging again
+    whether the federate closed its part (``fabric.tables.merge_parts``). Merging again
     keeps what was merged."""
     return {name: merge_parts(run_dir, name) for name in TABLES}
 

@@ -21,10 +21,10 @@ from typing import Any
 from coordinator.conductor import Conductor, Progress, RunFailed
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
-from services.common import keys
-from services.common.scenario import Scenario, dump_scenario
-from services.common.tables import write_json
-from services.common.zenoh_bus import ZenohBus
+from fabric import keys
+from fabric.tables import write_json
+from fabric.zenoh_bus import ZenohBus
+from scenario.schema import Scenario, dump_scenario
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ def federate_specs(scenario: Scenario) -> list[FederateSpec]:
     specs = []
     for name, role in scenario.federates():
         p = profiles.get(role)
-        limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb) if p else NodeLimits()
+        limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb, timing=p.timing) if p else NodeLimits()
         specs.append(FederateSpec(name=name, role=role, limits=limits))
     return specs
 

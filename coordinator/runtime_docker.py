@@ -6,9 +6,11 @@
 - one bridge network ``cosim5g-<run_id>`` and one container ``cosim5g-<run_id>-<federate>`` per
   federate, all labelled ``cosim5g.run_id=<run_id>`` (containers also ``cosim5g.federate``,
   ``cosim5g.role`` and ``cosim5g.owner``, the coordinator process that started them);
-- the node profile becomes the cgroup: CFS period 10 ms (a short period keeps a throttled job's
-  wall time close to cpu_time / cpus, see DESIGN.md section 5), quota = cpus x period, memory
-  limit with no swap;
+- the node profile becomes the cgroup: a ``wall``-timed node gets CFS period 10 ms (a short
+  period keeps a throttled job's wall time close to cpu_time / cpus, see DESIGN.md section 5)
+  and quota = cpus x period; a ``cpu``- or ``model``-timed node gets whole cores, ceil(cpus),
+  since its durations come from its jobs' CPU time and throttling would only inflate that
+  (``cpu_limit_cores``); memory limit with no swap;
 - no privileges, every capability dropped, no-new-privileges, read-only root with a tmpfs /tmp,
   and one bind mount: the run directory, read-write at the same path as on the coordinator's
   side so every path in a message or a config means the same file everywhere.
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import fcntl
 import logging
+import math
 import os
 import re
 import signal
@@ -111,12 +114,31 @@ def cfs_quota_us(cpus: float, period_us: int = CFS_PERIOD_US) -> int:
     return quota
 
 
+def cpu_limit_cores(limits: NodeLimits) -> float | None:
+    """The CPU the container may use, in host cores (None: unlimited).
+
+    A ``wall``-timed node is its quota: cpus x period, so a job's wall time is the emulation.
+    A ``cpu``- or ``model``-timed node takes its durations from the job's own CPU time (or a
+    draw), so a fractional quota would only stretch the wall clock -- and cost CPU time: a job
+    throttled in mid-run resumes on a core that slept (caches and branch predictors cold, the
+    core clocked down), measured on this platform's 2-core VM as 1.18-1.42x the CPU time of the
+    same loop on a busy core (``make calibrate``, idle-wake penalty), which is exactly the error
+    ``cpu`` timing is there to avoid. Such a node gets whole cores instead: ceil(cpus), which
+    still bounds how many threads it runs in parallel."""
+    if limits.cpus is None:
+        return None
+    if limits.timing == "wall":
+        return limits.cpus
+    return float(math.ceil(limits.cpus))
+
+
 def cgroup_limits(limits: NodeLimits) -> dict[str, Any]:
     """docker SDK ``containers.run`` keyword arguments for a node profile."""
     kw: dict[str, Any] = {}
-    if limits.cpus is not None:
+    cores = cpu_limit_cores(limits)
+    if cores is not None:
         kw["cpu_period"] = CFS_PERIOD_US
-        kw["cpu_quota"] = cfs_quota_us(limits.cpus)
+        kw["cpu_quota"] = cfs_quota_us(cores)
     if limits.mem_mb is not None:
         if limits.mem_mb < 6:
             raise ValueError(f"mem_mb={limits.mem_mb}: docker needs at least 6 MiB")
@@ -467,7 +489,7 @@ class DockerLauncher(Launcher):
         if spec.limits.cpus is not None:
             env["COSIM5G_NODE_CPUS"] = repr(spec.limits.cpus)
         if self.metrics_port:
-            env["COSIM5G_METRICS_PORT"] = str(self.metrics_port)  # services.common.metrics
+            env["COSIM5G_METRICS_PORT"] = str(self.metrics_port)  # fabric.metrics
         extra_hosts = {HOST_ALIAS: "host-gateway"} if self.coordinator_on_host else None
         try:
             container = self.client.containers.run(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.common.scenario import Scenario
+from scenario.schema import Scenario
 
 SATURATING_UES = 36
 SATURATING_RATE_MBPS = 10.0  # per UE: 360 Mbit/s offered, about twice the default cell

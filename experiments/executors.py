@@ -63,7 +63,7 @@ def _die_with_parent() -> None:
 
 
 def run_command(config_path: Path, runs_dir: Path, run_id: str, progress_file: Path | None = None) -> list[str]:
-    cmd = [sys.executable, "-m", "coordinator.cli", "run", str(config_path), "--quiet",
+    cmd = [sys.executable, "-m", "interfaces.cli", "run", str(config_path), "--quiet",
            "--results", str(runs_dir), "--run-id", run_id]
     if progress_file is not None:
         cmd += ["--progress-file", str(progress_file)]

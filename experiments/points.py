@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from experiments.spec import SweepSpec, base_path, overrides
-from services.common.scenario import Scenario, dump_scenario, load_scenario
+from scenario.schema import Scenario, dump_scenario, load_scenario
 
 
 @dataclass(frozen=True)

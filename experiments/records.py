@@ -26,7 +26,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from services.common.tables import write_json, write_table
+from fabric.tables import write_json, write_table
 
 # Bulky or per-loop KPI entries that stay in the run's kpis.json (per-loop ones are in loops.parquet).
 SKIPPED_KPIS = ("federates", "log_tail", "camera_bitrate_mbps", "windows_trace", "results_dir")

@@ -18,8 +18,8 @@ from experiments.figures import latency_figure, save, success_figure, traffic_fi
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
 from experiments.summary import capacity, series_name, summarise
-from services.common.scenario import load_scenario
-from services.common.tables import write_json
+from fabric.tables import write_json
+from scenario.schema import load_scenario
 
 
 def load_sweep_spec(sweep_dir: Path) -> SweepSpec:

@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from services.common.scenario import Scenario, ScenarioError, load_scenario
+from scenario.schema import Scenario, ScenarioError, load_scenario
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
 

@@ -64,5 +64,5 @@ CMD ["python", "-m", "services.main", "--help"]
 COPY project/ /wheelhouse/project/
 RUN pip install --no-cache-dir --no-index --no-deps /wheelhouse/project/*.whl \
  && rm -rf /wheelhouse \
- && python -c "import coordinator.api, services, netsim, experiments"
+ && python -c "import interfaces.api, services, netsim, experiments"
 USER cosim:cosim

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from fabric import metrics
+from fabric.federate import Federate
+from fabric.messages import Message
 from netsim.cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
@@ -22,9 +25,6 @@ from netsim.cell import (
 )
 from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
-from services.common import metrics
-from services.common.federate import Federate
-from services.common.messages import Message
 
 
 def make_cell(federate: Federate) -> Cell:

@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from fabric.seeding import rng as named_rng
 from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
 from netsim.nr.cell import NrCell
-from netsim.nr.config import NrConfig
-from services.common.seeding import rng as named_rng
+from scenario.nr import NrConfig
 
 GNB_HEIGHT_M = 1.5
 UE_HEIGHT_M = 1.5

@@ -25,8 +25,8 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from services.common.federate import EXIT_ORPHANED, Federate, FederateContext
-from services.common.scenario import ScenarioError, load_scenario
+from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
+from scenario.schema import ScenarioError, load_scenario
 
 PARENT_PID_ENV = "COSIM5G_PARENT_PID"
 ORPHAN_GRACE_S = 3.0  # time to write the last records once the coordinator is gone
@@ -140,8 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     except ScenarioError as exc:
         print(f"{args.name}: invalid scenario {args.scenario}:\n{exc.format()}", file=sys.stderr)
         return 2
-    from services.common.metrics import serve_from_env
-    from services.common.zenoh_bus import ZenohBus
+    from fabric.metrics import serve_from_env
+    from fabric.zenoh_bus import ZenohBus
 
     serve_from_env()
 

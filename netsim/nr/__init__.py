@@ -8,6 +8,6 @@ the slot loop tying them together).
 """
 
 from netsim.nr.cell import NrCell
-from netsim.nr.config import NrConfig
+from scenario.nr import NrConfig
 
 __all__ = ["NrCell", "NrConfig"]

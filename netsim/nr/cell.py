@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from fabric.seeding import rng as named_rng
 from netsim.cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
@@ -43,12 +44,11 @@ from netsim.cell import (
 )
 from netsim.nr.buffers import PacketEntry, SenderBuffer
 from netsim.nr.channel import InfSlChannel
-from netsim.nr.config import NrConfig
 from netsim.nr.harq import HarqEntity, TransportBlock
 from netsim.nr.link_adaptation import LinkAdaptation
 from netsim.nr.phy import PhyAbstraction
 from netsim.nr.scheduler import make_scheduler
-from services.common.seeding import rng as named_rng
+from scenario.nr import NrConfig
 
 DEFAULT_QOS = FlowQos()
 POWER_LIMIT_MARGIN_DB = 3.0  # SNR per PRB kept above the MCS-0 threshold by this much

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from netsim.nr.config import NrConfig
-from services.common.seeding import rng as named_rng
+from fabric.seeding import rng as named_rng
+from scenario.nr import NrConfig
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 FIELD_STEP_M = 1.0  # grid of the spatially consistent random fields

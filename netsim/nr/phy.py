@@ -15,11 +15,11 @@ import math
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
-McsTableName = Literal["qam64", "qam256", "qam64_low_se"]
+from scenario.nr import McsTableName
+
 TABLES_DIR = Path(__file__).with_name("tables")
 
 # TS 38.212 Table 5.3.2-1: LDPC lifting sizes Z = a * 2^j <= 384, a in {2,3,5,7,9,11,13,15}.

@@ -1,0 +1,1 @@
+"""The camera federate: captures, compresses and packetises frames, drops them by the loop's PDP."""

@@ -1,5 +1,5 @@
 """The camera node: receives rendered RGB-D frames, applies the D435-class sensor model
-(services/camera/sensor.py), keeps each with probability PDP_r (the Edge's
+(domain/sensor.py), keeps each with probability PDP_r (the Edge's
 co-design signal), compresses kept frames on its throttled CPU and hands them to the modem as
 IP packets of an uplink flow to the Edge.
 """
@@ -11,11 +11,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.camera.codec import encode_frame, slot_after, split_packets
-from services.camera.sensor import sense, sensor_for
-from services.common.compute import ComputeNode
-from services.common.federate import Federate
-from services.common.messages import Message
+from domain.codec import encode_frame, slot_after, split_packets
+from domain.sensor import sense, sensor_for
+from fabric.compute import ComputeNode
+from fabric.federate import Federate
+from fabric.messages import Message
 
 
 class CameraFederate(Federate):

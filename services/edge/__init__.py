@@ -1,0 +1,1 @@
+"""The Edge federate: decodes frames, estimates poses, tracks parts, runs the co-design policy."""

@@ -9,19 +9,16 @@ from typing import Any
 
 import cv2
 
-from services.camera.codec import decode_frame, slot_after
-from services.common import metrics
-from services.common.compute import ComputeNode
-from services.common.federate import Federate
-from services.common.messages import Message
-from services.edge.estimator import Detection, make_estimator
-from services.edge.policy import LoopState, Qos, make_policy
-from services.edge.tracker import Tracker
-from services.physics import cell_geometry as g
-from services.physics.cell_geometry import CameraIntrinsics
+from domain.cell_geometry import CameraIntrinsics
+from domain.codec import decode_frame, slot_after
+from domain.edge_side import CoDesign, downlink_packet, update_tracks
+from domain.estimator import Detection, make_estimator
+from domain.tracker import Tracker
+from fabric.compute import ComputeNode
+from fabric.federate import Federate
+from fabric.messages import Message
 
 PARTIAL_FRAME_TIMEOUT_US = 500_000  # a frame missing packets this long is given up
-QOS_REFRESH_US = 1_000_000  # resend an unchanged QoS this often (signalling can be lost)
 
 
 class EdgeFederate(Federate):
@@ -37,10 +34,9 @@ class EdgeFederate(Federate):
         self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.cell.object_size_m)
         self.loops = list(range(sc.detailed_loops))
         self.trackers = {i: Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
-        self.policy = make_policy(sc.policy)
+        self.codesign = CoDesign(sc.policy, sc.cell.belt_speed_m_s)
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
-        self.qos_sent: dict[int, tuple[Qos, int]] = {}
         self.frames = self.table("frames")
         self.frames_estimated = 0
         self.frames_incomplete = 0
@@ -82,36 +78,28 @@ class EdgeFederate(Federate):
             self.frames_incomplete += 1
 
     def _publish(self, loop: int, capture_us: int, detections: list[Detection]) -> None:
-        tracker = self.trackers[loop]
-        if tracker.last_update_us is not None and capture_us < tracker.last_update_us:
-            return  # an older frame finished after a newer one: its information is superseded
-        tracker.update(capture_us, [d.p for d in detections])
+        tracks = update_tracks(self.trackers[loop], capture_us, [d.p for d in detections])
+        if tracks is None:
+            return
         self.last_frame_us[loop] = capture_us
-        tracks = tracker.report(g.BELT_HALF_WIDTH)
         self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
                        {"type": "pose", "loop": loop, "tracks": tracks, "capture_us": capture_us})
 
     def _policy_tick(self) -> None:
         sc = self.scenario
         for loop in self.loops:
-            state = LoopState(self.now, self.trackers[loop].report(g.BELT_HALF_WIDTH),
-                              self.last_frame_us[loop], sc.cell.belt_speed_m_s)
-            qos, ready = self.cpu.run("policy", self.now, self.policy.decide, state)
-            metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
-            last = self.qos_sent.get(loop)
-            if last is None or last[0] != qos or self.now - last[1] >= QOS_REFRESH_US:
-                self.qos_sent[loop] = (qos, self.now)
-                self.schedule(ready, self._downlink, f"camera-{loop}", "qos", sc.edge.qos_packet_bytes,
-                              {"type": "qos", "loop": loop, "pdp": qos.pdp, "pdb_us": qos.pdb_us})
+            qos, ready = self.cpu.run("policy", self.now, self.codesign.decide, loop, self.now,
+                                      self.trackers[loop], self.last_frame_us[loop])
+            message = self.codesign.signal(loop, qos, self.now)
+            if message is not None:
+                self.schedule(ready, self._downlink, f"camera-{loop}", "qos", sc.edge.qos_packet_bytes, message)
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
 
     def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
-        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us), {
-            "ue": ue, "dir": "dl", "flow": f"{ue}/{what}", "size": size, "dst": ue, "pdb_us": None,
-            "app": app,
-        })
+        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),
+                  downlink_packet(ue, what, size, ue, app))
 
     def finish(self, reason: str) -> dict[str, Any]:
         done = self.frames_estimated

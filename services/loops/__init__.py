@@ -1,0 +1,1 @@
+"""The abstract loops federate: camera, Edge and robot of the loops not run in detail."""

@@ -17,22 +17,20 @@ from typing import Any
 
 import numpy as np
 
-from services.camera.codec import slot_after, split_packets
-from services.common import metrics
-from services.common.compute import ComputeNode
-from services.common.federate import Federate
-from services.common.messages import Message
-from services.common.tables import write_table
-from services.edge.policy import LoopState, Qos, make_policy
-from services.edge.tracker import Tracker
-from services.physics import cell_geometry as g
-from services.physics.scene import SERVO_LAG_S
-from services.robot.controller import PickController
+from domain.codec import slot_after, split_packets
+from domain.controller import PickController
+from domain.edge_side import CoDesign, downlink_packet, update_tracks
+from domain.scene import SERVO_LAG_S
+from domain.tracker import Tracker
+from fabric.compute import ComputeNode
+from fabric.federate import Federate
+from fabric.messages import Message
+from fabric.tables import write_table
 
 
 def load_frame_model() -> dict[str, Any]:
-    """The measured frame sizes and estimator error (``python -m services.camera.measure``)."""
-    text = resources.files("services.camera").joinpath("data/frame_model.json").read_text()
+    """The measured frame sizes and estimator error (``python -m training.frame_model``)."""
+    text = resources.files("domain").joinpath("data/frame_model.json").read_text()
     return json.loads(text)
 
 
@@ -53,7 +51,6 @@ class AbstractLoop:
     truth: dict[int, tuple[int, list[dict]]] = field(default_factory=dict)  # frame -> (capture, objs)
     arrived: dict[int, int] = field(default_factory=dict)  # frame -> packets arrived
     last_frame_us: int | None = None
-    qos_sent: tuple[Qos, int] | None = None
     frames: int = 0
     frames_kept: int = 0
     bytes_sent: int = 0
@@ -68,7 +65,7 @@ class LoopsFederate(Federate):
         self.sizes = np.asarray(model["frame_bytes"], dtype=np.int64)
         self.error_sd = float(model["estimator_error_sd_m"])
         self.miss_rate = float(model["estimator_miss_rate"])
-        self.policy = make_policy(sc.policy)
+        self.codesign = CoDesign(sc.policy, sc.cell.belt_speed_m_s)
         nodes = sc.nodes
 
         def modelled(profile: Any) -> Any:
@@ -161,34 +158,30 @@ class LoopsFederate(Federate):
 
     def _publish(self, loop: int, capture_us: int, positions: list[np.ndarray]) -> None:
         lp = self.loops[loop]
-        if lp.tracker.last_update_us is not None and capture_us < lp.tracker.last_update_us:
+        tracks = update_tracks(lp.tracker, capture_us, positions)
+        if tracks is None:
             return
-        lp.tracker.update(capture_us, positions)
         lp.last_frame_us = capture_us
         self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
-                       {"type": "pose", "loop": loop, "tracks": lp.tracker.report(g.BELT_HALF_WIDTH)})
+                       {"type": "pose", "loop": loop, "tracks": tracks})
 
     def _policy_tick(self) -> None:
         sc = self.scenario
         for lp in self.loops.values():
-            state = LoopState(self.now, lp.tracker.report(g.BELT_HALF_WIDTH), lp.last_frame_us,
-                              sc.cell.belt_speed_m_s)
-            qos = self.policy.decide(state)
-            metrics.LOOP_PDP.labels(str(lp.index)).set(qos.pdp)
-            if lp.qos_sent is None or lp.qos_sent[0] != qos or self.now - lp.qos_sent[1] >= 1_000_000:
-                lp.qos_sent = (qos, self.now)
+            qos = self.codesign.decide(lp.index, self.now, lp.tracker, lp.last_frame_us)
+            message = self.codesign.signal(lp.index, qos, self.now)
+            if message is not None:
+                # Modelled timing: the policy job's duration is drawn only when its QoS is sent.
                 _, ready = lp.edge_cpu.run("policy", self.now, int, 0)
                 self.schedule(ready, self._downlink, f"camera-{lp.index}", "qos", sc.edge.qos_packet_bytes,
-                              {"type": "qos", "loop": lp.index, "pdp": qos.pdp, "pdb_us": qos.pdb_us})
+                              message)
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
 
     def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
-        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us), {
-            "ue": ue, "dir": "dl", "flow": f"{ue}/{what}", "size": size, "dst": self.name,
-            "pdb_us": None, "app": app,
-        })
+        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),
+                  downlink_packet(ue, what, size, self.name, app))
 
     # ---- robot side -----------------------------------------------------------------------------
     def _control_tick(self) -> None:

@@ -12,24 +12,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.common.federate import Federate
-from services.common.messages import Message
-from services.physics.world import World, spawn_plan
+from domain.sensor import frame_offset_us, sensor_depth_mm
+from domain.world import World, spawn_plan
+from fabric.federate import Federate
+from fabric.messages import Message
 
 log = logging.getLogger(__name__)
-
-
-def frame_offset_us(loop: int, loops: int, frame_period_us: int, step_us: int) -> int:
-    """Capture phase of a loop's camera: cameras are not synchronised, spread over a period."""
-    return (loop * frame_period_us // max(loops, 1)) // step_us * step_us
-
-
-def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float, rng: np.random.Generator) -> np.ndarray:
-    """Stereo depth as a D435-class sensor reports it: uint16 millimetres, noise growing with
-    distance squared, zero where nothing is measured."""
-    noise = rng.normal(0.0, 1.0, depth_m.shape).astype(np.float32) * (noise_mm_at_1m * depth_m**2)
-    mm = depth_m * 1000.0 + noise
-    return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)
 
 
 class PhysicsFederate(Federate):

@@ -19,14 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from services.common.scenario import Scenario
-from services.common.seeding import rng
-from services.edge.tracker import Tracker
-from services.physics import cell_geometry as g
-from services.physics.arm import SERVO_LAG_S
-from services.physics.federate import frame_offset_us
-from services.physics.world import World, spawn_plan
-from services.robot.controller import PickController
+from domain import cell_geometry as g
+from domain.arm import SERVO_LAG_S
+from domain.controller import PickController
+from domain.sensor import frame_offset_us
+from domain.tracker import Tracker
+from domain.world import World, spawn_plan
+from fabric.seeding import rng
+from scenario.schema import Scenario
 
 
 @dataclass

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.common.compute import ComputeNode
-from services.common.federate import Federate
-from services.common.messages import Message
-from services.physics.arm import SERVO_LAG_S
-from services.robot.controller import PickController
+from domain.arm import SERVO_LAG_S
+from domain.controller import PickController
+from fabric.compute import ComputeNode
+from fabric.federate import Federate
+from fabric.messages import Message
 
 
 class RobotFederate(Federate):

@@ -61,7 +61,7 @@ def launcher(docker_client: Any) -> Any:
 
 def test_cgroup_limits_and_hardening(launcher: DockerLauncher, run_id: str, tmp_path: Path,
                                      docker_client: Any) -> None:
-    spec = FederateSpec("camera-0", "camera", NodeLimits(cpus=0.25, mem_mb=512))
+    spec = FederateSpec("camera-0", "camera", NodeLimits(cpus=0.25, mem_mb=512, timing="wall"))
     launcher._start([spec], run_id, tmp_path, lambda s: SLEEP)
     c = docker_client.containers.get(launcher.container("camera-0").id)
     hc = c.attrs["HostConfig"]
@@ -198,7 +198,7 @@ def test_scenario_outside_run_dir_is_refused(launcher: DockerLauncher, run_id: s
 def test_federate_reaches_router_on_host(launcher: DockerLauncher, run_id: str,
                                          tmp_path: Path) -> None:
     zenoh = pytest.importorskip("zenoh")
-    from services.common.zenoh_bus import session_config
+    from fabric.zenoh_bus import session_config
 
     with socket.socket() as s:  # a free port on the host
         s.bind(("127.0.0.1", 0))

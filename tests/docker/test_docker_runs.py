@@ -12,7 +12,7 @@ import pytest
 from coordinator.conductor import Progress
 from coordinator.run import execute_run
 from coordinator.runtime_docker import LABEL_RUN, DockerLauncher
-from services.common.scenario import load_scenario
+from scenario.schema import load_scenario
 
 pytestmark = pytest.mark.docker
 SMOKE = Path(__file__).parents[2] / "configs" / "scenarios" / "smoke.yaml"

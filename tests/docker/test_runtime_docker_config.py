@@ -17,17 +17,27 @@ from coordinator.runtime_docker import (
 )
 
 
-def test_cgroup_limits_of_a_node_profile() -> None:
-    assert cgroup_limits(NodeLimits(cpus=0.25, mem_mb=512)) == {
+def test_cgroup_limits_of_a_wall_timed_node_are_its_quota() -> None:
+    assert cgroup_limits(NodeLimits(cpus=0.25, mem_mb=512, timing="wall")) == {
         "cpu_period": 10_000, "cpu_quota": 2_500, "mem_limit": "512m", "memswap_limit": "512m"}
     assert cgroup_limits(NodeLimits()) == {}
     assert cfs_quota_us(1.5) == 15_000
 
 
+@pytest.mark.parametrize(("cpus", "cores"), [(0.25, 1), (1.0, 1), (1.5, 2)])
+@pytest.mark.parametrize("timing", ["cpu", "model"])
+def test_cpu_and_model_timed_nodes_get_whole_cores_never_throttled_mid_job(
+        cpus: float, cores: int, timing: str) -> None:
+    """Their durations come from CPU time (or a draw): a fractional quota would only add the
+    cost of resuming on a cold core to the CPU time it measures."""
+    kw = cgroup_limits(NodeLimits(cpus=cpus, timing=timing))
+    assert kw == {"cpu_period": 10_000, "cpu_quota": cores * 10_000}
+
+
 @pytest.mark.parametrize("cpus", [0.0, -1.0, 0.05])
 def test_unusable_cpus_are_refused_with_the_reason(cpus: float) -> None:
     with pytest.raises(ValueError, match="cpus"):
-        cgroup_limits(NodeLimits(cpus=cpus))
+        cgroup_limits(NodeLimits(cpus=cpus, timing="wall"))
 
 
 def test_exit_reasons() -> None:

@@ -1,6 +1,6 @@
 """Integration tests talk to coordinators they start: one API token for all of them.
 
-``cosim5g serve`` processes inherit ``COSIM5G_TOKEN`` and ``coordinator.client`` sends it, so no
+``cosim5g serve`` processes inherit ``COSIM5G_TOKEN`` and ``interfaces.client`` sends it, so no
 test reads or writes the token file of the working folder (``results/auth/api-token``, which
 ``make up`` uses). Tests of the token file itself unset it."""
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from coordinator.client import ApiError
-from coordinator.client import request as call
 from coordinator.run import free_port
+from interfaces.client import ApiError
+from interfaces.client import request as call
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -31,7 +31,7 @@ def server(tmp_path: Path, token_file: Path, monkeypatch: pytest.MonkeyPatch):
     monkeypatch.delenv("COSIM5G_TOKEN", raising=False)
     port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "coordinator.cli", "serve", "--port", str(port),
+        [sys.executable, "-m", "interfaces.cli", "serve", "--port", str(port),
          "--results", str(tmp_path / "runs"), "--db", str(tmp_path / "store.db"),
          "--scenarios", str(ROOT / "configs" / "scenarios"), "--token-file", str(token_file)],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ))
@@ -43,7 +43,7 @@ def server(tmp_path: Path, token_file: Path, monkeypatch: pytest.MonkeyPatch):
                 break
         except ApiError:
             time.sleep(0.2)
-    monkeypatch.setenv("COSIM5G_TOKEN_FILE", str(token_file))  # what coordinator.client reads
+    monkeypatch.setenv("COSIM5G_TOKEN_FILE", str(token_file))  # what interfaces.client reads
     yield base
     proc.terminate()
     proc.wait(30)
@@ -58,7 +58,7 @@ def test_the_token_is_written_at_first_start_and_required(server: str, token_fil
     assert call(server, "GET", "/runs")[0] == 200  # the token from COSIM5G_TOKEN_FILE
 
     def submit(*extra: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "coordinator.cli", "submit", "nope", "--api", server,
+        return subprocess.run([sys.executable, "-m", "interfaces.cli", "submit", "nope", "--api", server,
                                "--wait-s", "10", *extra], cwd=ROOT, capture_output=True, text=True,
                               env=env, timeout=60)
 

@@ -26,10 +26,10 @@ from schemathesis.specs.openapi.checks import (  # noqa: E402
     response_schema_conformance,
 )
 
-from coordinator.api import ApiLimits, create_app  # noqa: E402
 from coordinator.run import RunResult  # noqa: E402
 from experiments.executors import PointTask  # noqa: E402
-from services.common.scenario import Scenario  # noqa: E402
+from interfaces.api import ApiLimits, create_app  # noqa: E402
+from scenario.schema import Scenario  # noqa: E402
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]

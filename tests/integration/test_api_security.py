@@ -25,11 +25,11 @@ import uvicorn
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from coordinator.api import ApiLimits, create_app
-from coordinator.auth import TokenError, listen_sockets, server_token, token_matches
 from coordinator.run import RunResult
 from experiments.executors import PointTask
-from services.common.scenario import Scenario
+from interfaces.api import ApiLimits, create_app
+from interfaces.auth import TokenError, listen_sockets, server_token, token_matches
+from scenario.schema import Scenario
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]

@@ -15,9 +15,9 @@ from typing import Any
 
 import pytest
 
-from coordinator.client import ApiError
-from coordinator.client import request as call
 from coordinator.run import free_port
+from interfaces.client import ApiError
+from interfaces.client import request as call
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -40,7 +40,7 @@ class Server:
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "coordinator.cli", "serve", "--port", str(self.port),
+            [sys.executable, "-m", "interfaces.cli", "serve", "--port", str(self.port),
              "--results", str(self.root / "runs"), "--db", str(self.root / "store.db"),
              "--sweeps", str(self.root / "sweeps"), "--scenarios", str(ROOT / "configs" / "scenarios"),
              "--sweep-specs", str(ROOT / "configs" / "sweeps")],
@@ -196,7 +196,7 @@ def _processes_under(path: Path) -> list[int]:
 
 def test_submit_sweep_from_the_cli_and_cancel_it(finished_sweep: Any) -> None:
     server, _ = finished_sweep
-    out = subprocess.run([sys.executable, "-m", "coordinator.cli", "submit", "--sweep", "quick", "--api",
+    out = subprocess.run([sys.executable, "-m", "interfaces.cli", "submit", "--sweep", "quick", "--api",
                           server.base], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     sid = out.stdout.strip().splitlines()[-1]

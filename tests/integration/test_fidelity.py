@@ -24,7 +24,7 @@ REFERENCE = json.loads((ROOT / "tests" / "reference" / "fidelity.json").read_tex
 def test_kpis_match_the_reference(name: str, tmp_path: Path) -> None:
     ref = REFERENCE["runs"][name]
     sets = [a for o in [*REFERENCE["overrides_all"], *ref["overrides"]] for a in ("--set", o)]
-    proc = subprocess.run([sys.executable, "-m", "coordinator.cli", "run", ref["scenario"], *sets, "--json",
+    proc = subprocess.run([sys.executable, "-m", "interfaces.cli", "run", ref["scenario"], *sets, "--json",
                            "--quiet", "--results", str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
                           timeout=1800)
     assert proc.returncode == 0, proc.stderr[-3000:]

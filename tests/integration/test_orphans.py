@@ -18,8 +18,8 @@ import pytest
 from coordinator.conductor import Progress
 from coordinator.run import execute_run
 from coordinator.runtime_process import ProcessLauncher
-from services.common.scenario import load_scenario
-from services.common.tables import TABLES, PartInfo, read_part
+from fabric.tables import TABLES, PartInfo, read_part
+from scenario.schema import load_scenario
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -57,7 +57,7 @@ def test_sigkilled_coordinator_leaves_no_federate_behind(tmp_path: Path) -> None
     log = tmp_path / "coordinator.log"
     with log.open("wb") as err:
         coordinator = subprocess.Popen(
-            [sys.executable, "-m", "coordinator.cli", "run", str(SMOKE), "--quiet", "--results", str(tmp_path),
+            [sys.executable, "-m", "interfaces.cli", "run", str(SMOKE), "--quiet", "--results", str(tmp_path),
              "--run-id", run_id, "--progress-file", str(progress), "--set", "duration_s=120",
              *[a for o in MODEL_TIMING for a in ("--set", o)]],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err,

@@ -16,7 +16,7 @@ import pytest
 from coordinator.conductor import Progress
 from coordinator.run import execute_run
 from coordinator.runtime_process import ProcessLauncher
-from services.common.scenario import load_scenario
+from scenario.schema import load_scenario
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -38,7 +38,7 @@ def processes_of(run_id: str) -> list[int]:
 
 def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "coordinator.cli", "run", str(SMOKE), "--json", "--quiet",
+        [sys.executable, "-m", "interfaces.cli", "run", str(SMOKE), "--json", "--quiet",
          "--results", str(tmp_path)],
         capture_output=True, text=True, timeout=600, cwd=ROOT,
     )

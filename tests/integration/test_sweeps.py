@@ -31,7 +31,7 @@ def write_spec(path: Path, name: str, loops: list[int]) -> Path:
 
 
 def sweep(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "coordinator.cli", "sweep", *args, "--quiet"], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "interfaces.cli", "sweep", *args, "--quiet"], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
 
 
@@ -55,7 +55,7 @@ def run_processes_under(path: Path) -> list[int]:
 def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path: Path) -> None:
     spec = write_spec(tmp_path / "three.yaml", "three", [1, 2, 3])
     results = tmp_path / "sweeps"
-    proc = subprocess.Popen([sys.executable, "-m", "coordinator.cli", "sweep", str(spec), "--results",
+    proc = subprocess.Popen([sys.executable, "-m", "interfaces.cli", "sweep", str(spec), "--results",
                              str(results), "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 300
@@ -105,7 +105,7 @@ def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path:
     for stem in FIGURES:
         (sweep_dir / f"{stem}.png").unlink()
     (sweep_dir / "report.md").unlink()
-    rebuilt = subprocess.run([sys.executable, "-m", "coordinator.cli", "report", str(sweep_dir)], cwd=ROOT,
+    rebuilt = subprocess.run([sys.executable, "-m", "interfaces.cli", "report", str(sweep_dir)], cwd=ROOT,
                              capture_output=True, text=True, timeout=120)
     assert rebuilt.returncode == 0, rebuilt.stderr
     assert (sweep_dir / "report.md").read_text() == report

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.common.compute import ComputeNode
-from services.common.host_speed import HostScore, reference
-from services.common.scenario import JobModel, NodeProfile, PolicyConfig
-from services.common.seeding import rng
-from services.edge.policy import LoopState, make_policy
+from domain.policy import LoopState, make_policy
+from fabric.compute import ComputeNode
+from fabric.host_speed import HostScore, reference
+from fabric.seeding import rng
+from scenario.schema import JobModel, NodeProfile, PolicyConfig
 
 
 def busy(n: int) -> int:

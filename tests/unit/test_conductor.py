@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from coordinator.conductor import Conductor, RunFailed
-from services.common.bus import InMemoryBus, InMemoryHub
-from services.common.federate import CausalityError, Federate, FederateContext
-from services.common.messages import Message
-from services.common.scenario import parse_scenario
+from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.federate import CausalityError, Federate, FederateContext
+from fabric.messages import Message
+from scenario.schema import parse_scenario
 
 W = 1000
 

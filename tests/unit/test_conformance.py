@@ -29,16 +29,16 @@ from typing import Any
 import numpy as np
 import pytest
 
+from domain.codec import encode_frame, split_packets
+from fabric import federate as federate_mod
+from fabric import keys
+from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
+from fabric.messages import Advance, Done, Message, Stop, Stopped
+from fabric.tables import PartInfo, read_part
 from netsim.federate import NetsimFederate
-from services.camera.codec import encode_frame, split_packets
+from scenario.schema import Scenario, parse_scenario
 from services.camera.federate import CameraFederate
-from services.common import federate as federate_mod
-from services.common import keys
-from services.common.bus import InMemoryBus, InMemoryHub
-from services.common.federate import EXIT_ORPHANED, Federate, FederateContext
-from services.common.messages import Advance, Done, Message, Stop, Stopped
-from services.common.scenario import Scenario, parse_scenario
-from services.common.tables import PartInfo, read_part
 from services.edge.federate import EdgeFederate
 from services.loops.federate import LoopsFederate
 from services.physics.federate import PhysicsFederate

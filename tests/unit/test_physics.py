@@ -7,14 +7,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from services.common.scenario import ScenarioError, parse_scenario
-from services.physics import cell_geometry as g
-from services.physics.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
+from domain import cell_geometry as g
+from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
+from domain.controller import PickController
+from domain.kinematics import ArmKinematics
+from domain.scene import build_mjcf, object_pool_size
+from domain.world import World, spawn_plan
+from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
-from services.physics.scene import build_mjcf, object_pool_size
-from services.physics.world import World, spawn_plan
-from services.robot.controller import PickController
-from services.robot.kinematics import ArmKinematics
 
 # UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]

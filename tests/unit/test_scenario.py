@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from coordinator.cli import main
-from services.common.scenario import ScenarioError, load_scenario, parse_scenario
+from interfaces.cli import main
+from scenario.schema import ScenarioError, load_scenario, parse_scenario
 
 SCENARIOS = sorted((Path(__file__).parents[2] / "configs" / "scenarios").glob("*.yaml"))
 

@@ -7,11 +7,11 @@ from typing import Any
 
 import pytest
 
-from coordinator.cli import main
 from experiments.points import expand
 from experiments.records import SweepDir, flatten_kpis, write_rows
 from experiments.spec import SweepError, load_spec, parse_spec
 from experiments.summary import capacity, capacity_of_curve, mean_ci, summarise, wilson
+from interfaces.cli import main
 
 ROOT = Path(__file__).parents[2]
 SCENARIOS = ROOT / "configs" / "scenarios"

@@ -10,12 +10,11 @@ from typing import Any
 import pyarrow.parquet as pq
 import pytest
 
-from services.common import tables
-from services.common.bus import InMemoryBus, InMemoryHub
-from services.common.compute import JobRecord
-from services.common.federate import Federate, FederateContext
-from services.common.scenario import parse_scenario
-from services.common.tables import (
+from fabric import tables
+from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.compute import JobRecord
+from fabric.federate import Federate, FederateContext
+from fabric.tables import (
     PACKETS,
     PartInfo,
     TableError,
@@ -24,6 +23,7 @@ from services.common.tables import (
     part_path,
     read_part,
 )
+from scenario.schema import parse_scenario
 
 
 def packet(i: int, lost: bool = False) -> dict[str, Any]:

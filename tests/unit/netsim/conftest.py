@@ -15,7 +15,7 @@ import pytest
 if importlib.util.find_spec("netsim") is None:  # pragma: no cover - depends on the install
     sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 
-from netsim.nr.config import NrConfig  # noqa: E402
+from scenario.nr import NrConfig  # noqa: E402
 
 HALL_CENTRE = (60.0, 30.0, 1.5)
 

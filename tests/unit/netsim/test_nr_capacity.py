@@ -9,8 +9,8 @@ import pytest
 
 from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, Packet
 from netsim.nr.cell import NrCell
-from netsim.nr.config import CALIBRATED_UL_CAPACITY_MBPS, NrConfig
 from netsim.standalone import camera_layout, run_uplink_cameras
+from scenario.nr import CALIBRATED_UL_CAPACITY_MBPS, NrConfig
 
 SEEDS = (0, 1, 2)
 

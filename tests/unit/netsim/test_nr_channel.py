@@ -15,7 +15,7 @@ from netsim.nr.channel import (
     inf_sl_los_probability,
     inf_sl_pathloss_db,
 )
-from netsim.nr.config import NrConfig
+from scenario.nr import NrConfig
 
 FC = 3.5e9
 

@@ -5,12 +5,11 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from netsim.nr.config import CALIBRATED_N_PRB, NrConfig
+from scenario.nr import NrConfig
 
 
-def test_defaults_are_the_calibrated_study_cell() -> None:
+def test_derived_slot_timing_and_resource_elements() -> None:
     cfg = NrConfig()
-    assert cfg.n_prb == CALIBRATED_N_PRB
     assert cfg.slot_us == 1000 and cfg.subcarrier_spacing_hz == 15000
     assert (cfg.dl_ctrl_symbols, cfg.dl_data_symbols, cfg.guard_symbols, cfg.ul_data_symbols,
             cfg.ul_ctrl_symbols) == (1, 4, 1, 7, 1)

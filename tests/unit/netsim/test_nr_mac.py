@@ -8,8 +8,8 @@ import pytest
 
 from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
 from netsim.nr.cell import NrCell
-from netsim.nr.config import NrConfig
 from netsim.nr.scheduler import MaxRate, ProportionalFair, RoundRobin, make_scheduler
+from scenario.nr import NrConfig
 
 GNB = (60.0, 30.0, 1.5)
 

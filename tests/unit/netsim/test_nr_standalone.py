@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from netsim.nr.config import NrConfig
 from netsim.standalone import camera_layout, main, radical_inverse
+from scenario.nr import NrConfig
 
 
 def test_layout_is_inside_the_hall_and_stable_in_n() -> None:

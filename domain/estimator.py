@@ -1,0 +1,83 @@
+"""Classical object pose estimation from one RGB-D frame: colour segmentation of the parts, depth
+back-projection of each blob's centre to a 3-D position in the cell frame.
+
+The parts are saturated orange on a dark belt; a hue/saturation threshold separates them, and
+the median depth inside the blob gives the distance to the part's top face.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from domain.cell_geometry import CameraIntrinsics
+from domain.detection import Detection
+
+log = logging.getLogger(__name__)
+
+MIN_BLOB_PX = 30  # smaller blobs are noise (a 6 cm part at 1 m covers ~400 px at 640x360)
+
+
+class Estimator(Protocol):
+    """What the Edge needs of a pose estimator."""
+
+    name: str
+
+    def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
+        """Parts in one decoded frame (rgb uint8 HxWx3, depth uint16 mm HxW, 0 = invalid)."""
+        ...
+
+
+class ClassicalEstimator:
+    """HSV segmentation + depth back-projection."""
+
+    name = "classical"
+
+    def __init__(self, intrinsics: CameraIntrinsics, object_size_m: float) -> None:
+        self.k = intrinsics
+        self.half = object_size_m / 2
+
+    def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
+        hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
+        # OpenCV hue is 0..180: orange ~ 8..22.
+        mask = cv2.inRange(hsv, np.array([5, 120, 80]), np.array([25, 255, 255]))
+        n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        out = []
+        for i in range(1, n):
+            area = int(stats[i, cv2.CC_STAT_AREA])
+            if area < MIN_BLOB_PX:
+                continue
+            d = depth_mm[labels == i]
+            d = d[d > 0]
+            if d.size == 0:
+                continue
+            z = float(np.median(d)) / 1000.0
+            u, v = centroids[i]
+            top = self.k.back_project(float(u), float(v), z)
+            out.append(Detection(p=top - np.array([0.0, 0.0, self.half]), area_px=area))
+        return out
+
+
+def make_estimator(name: str, intrinsics: CameraIntrinsics, object_size_m: float,
+                   model_path: str | Path | None = None) -> tuple[Estimator, str | None]:
+    """The estimator called ``name`` (``learned`` or ``classical``) and, when another one had to
+    stand in, why: ``learned`` falls back to ``classical`` when its model cannot be loaded."""
+    if name == "classical":
+        return ClassicalEstimator(intrinsics, object_size_m), None
+    if name == "learned":
+        from domain import pose_net
+
+        path = Path(model_path) if model_path is not None else pose_net.DEFAULT_MODEL
+        reason = pose_net.model_available(path)
+        if reason is None:
+            try:
+                return pose_net.LearnedEstimator(intrinsics, object_size_m, path), None
+            except Exception as exc:  # a corrupt or incompatible model file
+                reason = f"cannot load {path}: {exc}"
+        log.warning("learned estimator unavailable (%s); using the classical estimator", reason)
+        return ClassicalEstimator(intrinsics, object_size_m), reason
+    raise ValueError(f"unknown estimator {name!r}; valid: learned, classical")

@@ -1,0 +1,99 @@
+"""Forward and inverse kinematics of one cell's arm, on the robot node's own MjModel of the arm
+(domain/models/arm6.xml, base at the origin) placed at the cell's calibrated base pose.
+
+IK is damped least squares on the 6-D tool pose error (position and orientation of the tool
+centre point), warm-started from the previous joint solution: the controller calls it every
+control period for a setpoint that moved at most ~1 cm, so one or two iterations converge.
+The geometric Jacobian comes straight from the hinge axes and anchors that ``mj_kinematics``
+computes (J_p = axis x (tcp - anchor), J_r = axis), which is all a serial chain of hinges needs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+
+from domain import cell_geometry as g
+from domain.arm import TCP_SITE, arm_model
+
+DAMPING = 0.01  # DLS damping (m or rad): small against the singular values the cell allows (>= 0.065)
+MAX_ITER_STEP_RAD = 0.2  # cap on one iteration's joint step, keeps far solves on one branch
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class ArmKinematics:
+    """FK / IK of the arm in the cell frame."""
+
+    def __init__(self, base_pos: tuple[float, float, float] = g.ARM_BASE_POS,
+                 base_yaw: float = g.ARM_BASE_YAW) -> None:
+        self.model = arm_model()
+        self.data = mujoco.MjData(self.model)
+        self.site = self.model.site(TCP_SITE).id
+        self.nq = self.model.nq
+        self.base_p = np.asarray(base_pos, dtype=float)
+        self.base_r = yaw_matrix(base_yaw)
+        self.lo = self.model.jnt_range[:, 0].copy()
+        self.hi = self.model.jnt_range[:, 1].copy()
+        self._eye = np.eye(6) * DAMPING**2
+
+    def _kin(self, q: np.ndarray) -> None:
+        self.data.qpos[:] = q
+        mujoco.mj_kinematics(self.model, self.data)
+
+    def fk(self, q: np.ndarray | list[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Tool centre point position (m) and orientation (3x3) in the cell frame."""
+        self._kin(np.asarray(q, dtype=float))
+        p = self.base_r @ self.data.site_xpos[self.site] + self.base_p
+        r = self.base_r @ self.data.site_xmat[self.site].reshape(3, 3)
+        return p, r
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """6 x nq geometric Jacobian of the tool centre point (base frame), at q."""
+        self._kin(q)
+        return self._jac(self.data.site_xpos[self.site])
+
+    def _jac(self, tcp: np.ndarray) -> np.ndarray:
+        a = self.data.xaxis
+        r = tcp - self.data.xanchor
+        j = np.empty((6, self.nq))
+        # rows 0-2: axis x (tcp - anchor), written out (np.cross costs more than the rest)
+        j[0] = a[:, 1] * r[:, 2] - a[:, 2] * r[:, 1]
+        j[1] = a[:, 2] * r[:, 0] - a[:, 0] * r[:, 2]
+        j[2] = a[:, 0] * r[:, 1] - a[:, 1] * r[:, 0]
+        j[3:] = a.T
+        return j
+
+    def solve(self, p: np.ndarray, rot: np.ndarray, q_seed: np.ndarray, iters: int = 4,
+              tol: float = 1e-5) -> tuple[np.ndarray, float]:
+        """Joint positions putting the tool at ``p`` with orientation ``rot`` (cell frame), from
+        ``q_seed``; returns (q, remaining error norm). Best effort when the pose is unreachable."""
+        pb = self.base_r.T @ (np.asarray(p, float) - self.base_p)
+        rb = self.base_r.T @ np.asarray(rot, float)
+        q = np.array(q_seed, dtype=float)
+        err = math.inf
+        for it in range(iters + 1):
+            self._kin(q)
+            x = self.data.site_xpos[self.site]
+            m = rb @ self.data.site_xmat[self.site].reshape(3, 3).T
+            e = np.empty(6)
+            e[:3] = pb - x
+            # Orientation error: sin(angle) * axis of the rotation from current to desired.
+            e[3] = 0.5 * (m[2, 1] - m[1, 2])
+            e[4] = 0.5 * (m[0, 2] - m[2, 0])
+            e[5] = 0.5 * (m[1, 0] - m[0, 1])
+            err = float(np.linalg.norm(e))
+            if err < tol or it == iters:
+                break
+            j = self._jac(x)
+            dq = j.T @ np.linalg.solve(j @ j.T + self._eye, e)
+            big = float(np.abs(dq).max())
+            if big > MAX_ITER_STEP_RAD:
+                dq *= MAX_ITER_STEP_RAD / big
+            q = np.clip(q + dq, self.lo, self.hi)
+        return q, err

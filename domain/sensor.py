@@ -1,0 +1,148 @@
+"""What a D435-class RGB-D sensor makes of the rendered scene: stereo depth noise growing with
+distance squared, invalid (zero) pixels where stereo cannot match, and colour sensor noise.
+
+The renderer gives ideal depth and colour; a real active-stereo camera does not. The model:
+
+- Depth comes from disparity ``d = f B / z`` (f focal length in pixels at the configured
+  resolution, B the 50 mm baseline). The stereo matcher's disparity error has an sd of
+  ``subpixel_px`` (Intel's depth-tuning white paper: RMS depth error = z^2 subpixel / (f B), with
+  subpixel about 0.08 px on a well-textured scene), so depth noise grows with z^2 and shrinks
+  with resolution. The matcher aggregates costs over a window, so most of that error is
+  spatially correlated (a smooth ripple over ~``corr_px`` pixels); a smaller part is per pixel.
+- Invalid pixels (depth 0): the left band the right imager cannot see (``f B / z`` columns
+  wide, the left-imager-referenced D4xx depth), occlusion shadows left of nearer surfaces
+  (points the right imager cannot see), unreliable matches at depth discontinuities, and
+  anything closer than the minimum depth.
+- Colour: photon shot noise plus read noise, ``sd = sqrt(read^2 + gain * I)`` digital numbers.
+
+These are what make real depth compress much worse than clean rendered depth; the camera
+defaults (resolution, JPEG quality) are chosen with them on (training/frame_model.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from domain.cell_geometry import CameraIntrinsics
+from scenario.schema import CameraConfig
+
+MAX_SHADOW_PX = 48  # occlusion shadows wider than this are cut (arm very close to the camera)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Noise and invalid-pixel parameters of a D435-class camera (see the module docstring)."""
+
+    f_px: float  # focal length at the configured resolution, pixels
+    baseline_m: float = 0.05  # stereo baseline, m
+    subpixel_px: float = 0.08  # disparity error sd of the stereo matcher, px
+    white_fraction: float = 0.35  # share of the disparity error sd that is per pixel (rest correlated)
+    corr_px: float = 6.0  # correlation length of the correlated part, px at 640 px width
+    min_depth_m: float = 0.11  # closer surfaces are not measured
+    edge_invalid_p: float = 0.5  # probability that a pixel at a depth discontinuity is invalid
+    edge_jump_m: float = 0.02  # a step larger than this between neighbours is a discontinuity
+    rgb_read_dn: float = 1.0  # read noise sd, 8-bit digital numbers
+    rgb_gain_dn: float = 0.02  # shot noise: variance per digital number of signal
+
+    def depth(self, depth_mm: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Measured depth (uint16 mm, 0 = invalid) from ideal depth (uint16 mm, HxW)."""
+        h, w = depth_mm.shape
+        z = depth_mm.astype(np.float32) / 1000.0
+        valid = z >= self.min_depth_m
+        fb = self.f_px * self.baseline_m
+        disp = np.where(valid, fb / np.maximum(z, 1e-3), 0.0).astype(np.float32)
+        # Correlated part: white noise on a coarse grid, smoothly interpolated.
+        scale = self.corr_px * w / 640.0
+        gh, gw = max(2, int(round(h / scale)) + 1), max(2, int(round(w / scale)) + 1)
+        sd_corr = self.subpixel_px * np.sqrt(1.0 - self.white_fraction**2)
+        coarse = rng.standard_normal((gh, gw), dtype=np.float32)
+        corr = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
+        corr *= sd_corr / max(float(corr.std()), 1e-6)  # interpolation lowers the variance between nodes
+        white = rng.standard_normal((h, w), dtype=np.float32) * (self.subpixel_px * self.white_fraction)
+        noisy = disp + corr + white
+        invalid = ~valid | (noisy <= 0.1)
+        # Left band: columns u < d are outside the right imager's view.
+        invalid |= np.arange(w, dtype=np.float32)[None, :] < disp
+        invalid |= self._shadow(disp)
+        invalid |= self._edges(z, rng)
+        out = np.where(invalid, 0.0, fb / np.maximum(noisy, 0.1) * 1000.0)
+        return np.clip(np.rint(out), 0, 65535).astype(np.uint16)
+
+    @staticmethod
+    def _shadow(disp: np.ndarray) -> np.ndarray:
+        """Pixels the right imager cannot see: a nearer surface k columns to the right projects
+        onto the same right-image column (disparity larger by at least k)."""
+        span = int(min(MAX_SHADOW_PX, np.ceil(float(disp.max() - disp[disp > 0].min(initial=0.0)))))
+        occluded = np.zeros(disp.shape, bool)
+        for k in range(1, span + 1):
+            occluded[:, :-k] |= disp[:, k:] - k > disp[:, :-k] + 0.5
+        return occluded
+
+    def _edges(self, z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Unreliable matches where depth jumps between neighbouring pixels."""
+        jump = np.zeros(z.shape, bool)
+        dx = np.abs(np.diff(z, axis=1)) > self.edge_jump_m
+        dy = np.abs(np.diff(z, axis=0)) > self.edge_jump_m
+        jump[:, 1:] |= dx
+        jump[:, :-1] |= dx
+        jump[1:, :] |= dy
+        jump[:-1, :] |= dy
+        return jump & (rng.random(z.shape, dtype=np.float32) < self.edge_invalid_p)
+
+    def rgb(self, rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Colour with shot and read noise (uint8 HxWx3)."""
+        x = rgb.astype(np.float32)
+        sd = np.sqrt(self.rgb_read_dn**2 + self.rgb_gain_dn * x)
+        return np.clip(np.rint(x + rng.standard_normal(x.shape, dtype=np.float32) * sd), 0, 255).astype(np.uint8)
+
+
+def decimate_depth(depth_mm: np.ndarray, factor: int) -> np.ndarray:
+    """The RealSense SDK's decimation filter: each ``factor`` x ``factor`` block becomes one
+    pixel, the median of its valid pixels for factors 2 and 3, their mean for larger factors,
+    0 where a block has no valid pixel. The image is cropped to a multiple of ``factor``."""
+    if factor == 1:
+        return depth_mm
+    h, w = (depth_mm.shape[0] // factor) * factor, (depth_mm.shape[1] // factor) * factor
+    tiles = depth_mm[:h, :w].reshape(h // factor, factor, w // factor, factor).swapaxes(1, 2)
+    blocks = tiles.reshape(h // factor, w // factor, factor * factor).astype(np.float32)
+    valid = blocks > 0
+    n = valid.sum(axis=2)
+    if factor <= 3:  # median of the valid pixels: zeros sort first, take the middle of the rest
+        srt = np.sort(blocks, axis=2)
+        idx = np.minimum((factor * factor - n) + np.maximum(n - 1, 0) // 2, factor * factor - 1)
+        out = np.take_along_axis(srt, idx[..., None], axis=2)[..., 0]
+    else:
+        out = blocks.sum(axis=2) / np.maximum(n, 1)
+    return np.where(n > 0, np.rint(out), 0).astype(np.uint16)
+
+
+def sensor_for(cam: CameraConfig) -> SensorModel | None:
+    """The sensor model of a scenario's camera section (None for ``ideal``)."""
+    if cam.sensor_model == "ideal":
+        return None
+    f_px = CameraIntrinsics(cam.width_px, cam.height_px, cam.fovy_deg).f_px
+    return SensorModel(f_px=f_px, subpixel_px=cam.depth_subpixel_px)
+
+
+def sense(sensor: SensorModel | None, rgb: np.ndarray, depth_mm: np.ndarray,
+          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, depth_mm) as the sensor delivers them from the rendered pair."""
+    if sensor is None:
+        return rgb, depth_mm
+    return sensor.rgb(rgb, rng), sensor.depth(depth_mm, rng)
+
+
+def frame_offset_us(loop: int, loops: int, frame_period_us: int, step_us: int) -> int:
+    """Capture phase of a loop's camera: cameras are not synchronised, spread over a period."""
+    return (loop * frame_period_us // max(loops, 1)) // step_us * step_us
+
+
+def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float, rng: np.random.Generator) -> np.ndarray:
+    """Stereo depth as a D435-class sensor reports it: uint16 millimetres, noise growing with
+    distance squared, zero where nothing is measured."""
+    noise = rng.normal(0.0, 1.0, depth_m.shape).astype(np.float32) * (noise_mm_at_1m * depth_m**2)
+    mm = depth_m * 1000.0 + noise
+    return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)

@@ -1,0 +1,470 @@
+"""Compute emulation (DESIGN 5): a node runs its jobs for real, one at a time per emulated core,
+and each job's emulated duration comes from the node's timing mode.
+
+- ``cpu`` (default): the job's own CPU time, in reference-core time, over the node's ``cpus``
+  (divided by the parallelism the job really used, capped by the node's cores). A job's CPU time
+  is the CPU clock of the thread that runs it plus that of the library worker threads (OpenCV,
+  ONNX Runtime, BLAS pools) it used -- never the zenoh or other runtime threads of the process,
+  so what else the process or the host runs does not count;
+- ``wall``: the job's wall-clock duration inside the node's CPU-limited cgroup, in
+  reference-core time. Refused where no matching CPU quota is visible, and for jobs shorter than
+  ``WALL_MIN_PERIODS`` CFS periods (a short job finishes inside one period's quota and is never
+  throttled; docs/compute.md);
+- ``model``: a seeded draw from the configured distribution -- deterministic and host-independent.
+
+Reference-core time: ``cpus`` are cores of the reference core (``fabric.host_speed``).
+Host CPU time is multiplied by ``scale = host score / reference score``, so one scenario gives
+the same compute latencies on a faster or slower host. The node also probes its speed during the
+run and reports it (``speed_summary``), flagged when it drifted more than ``DRIFT_LIMIT`` from the
+score its durations were scaled by.
+
+A job arriving at simulated time t starts at max(t, earliest free core) and its outputs are due
+at start + duration. Per job we keep queueing delay, emulated duration, CPU time, wall time and,
+where the cgroup exposes it, the CPU time the kernel throttled the node for.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+
+from fabric import host_speed, metrics
+from fabric.host_speed import HostScore
+from scenario.schema import JobModel, NodeProfile
+
+T = TypeVar("T")
+
+# Emulated durations of the platform's jobs when a profile gives none: cpu-mode medians of the
+# smoke scenario (424x240 frames; camera 0.25, Edge 1.0, robot 0.25 cpus), rounded up. compress:
+# JPEG + decimated delta-zlib depth; pose: decode + the learned estimator (docs/perception.md).
+DEFAULT_JOB_MODELS = {
+    "compress": JobModel(mean_us=5_000, sd_us=800),
+    "pose": JobModel(mean_us=4_000, sd_us=500),
+    "policy": JobModel(mean_us=50, sd_us=10),
+    "control": JobModel(mean_us=1_600, sd_us=300),
+}
+
+
+# ``wall`` timing: the shortest job, in CFS periods of the node's cgroup, whose wall time says
+# something about the node's speed. A job of ideal duration d under a quota of cpus x P per
+# period P finishes up to (1 - cpus) x P early (it may run out its quota at full speed and never be
+# throttled), so its error is up to (1 - cpus) x P / d: 15% at 0.25 cpus and 5 periods.
+WALL_MIN_PERIODS = 5
+# ``wall`` timing: how far the cgroup's quota may be from the profile's cpus (rounding of quota_us).
+QUOTA_TOLERANCE = 0.02
+# A node whose measured speed during the run is this far from the score its durations were scaled
+# by is flagged: its compute latencies cannot be trusted (host contention, frequency changes).
+DRIFT_LIMIT = 0.10
+# How often (simulated time) a node probes its speed during a run, besides at start and finish.
+PROBE_PERIOD_US = 10_000_000
+
+
+class WallTimingRefused(ValueError):
+    """``wall`` timing cannot emulate this node: no matching CPU quota, or jobs too short."""
+
+
+@dataclass(frozen=True)
+class CpuQuota:
+    """The CFS bandwidth limit of this process's cgroup."""
+
+    quota_us: int
+    period_us: int
+
+    @property
+    def cpus(self) -> float:
+        return self.quota_us / self.period_us
+
+
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+SELF_CGROUP = Path("/proc/self/cgroup")
+
+
+def _own_cgroups(self_cgroup: Path) -> dict[str, str]:
+    """Controller (``""`` for cgroup v2) -> this process's cgroup path, from /proc/self/cgroup."""
+    out: dict[str, str] = {}
+    try:
+        text = self_cgroup.read_text()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        parts = line.split(":", 2)
+        if len(parts) == 3:
+            for ctrl in parts[1].split(",") if parts[1] else [""]:
+                out[ctrl] = parts[2].strip().lstrip("/")
+    return out
+
+
+def read_cpu_quota(root: Path = CGROUP_ROOT, self_cgroup: Path = SELF_CGROUP) -> CpuQuota | None:
+    """This process's CPU quota (cgroup v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us``), None if none.
+
+    Inside a container the cgroup is mounted at the root of the hierarchy; on a host it is the
+    path /proc/self/cgroup names, so both places are tried, the process's own first."""
+    own = _own_cgroups(self_cgroup)
+    for base in (root / own.get("", ""), root):
+        try:
+            quota, period = (base / "cpu.max").read_text().split()
+        except (OSError, ValueError):
+            continue
+        return None if quota == "max" else CpuQuota(int(quota), int(period))
+    for mount in (root / "cpu", root / "cpu,cpuacct"):
+        for base in (mount / own.get("cpu", ""), mount):
+            try:
+                quota_us = int((base / "cpu.cfs_quota_us").read_text())
+                period_us = int((base / "cpu.cfs_period_us").read_text())
+            except (OSError, ValueError):
+                continue
+            return None if quota_us < 0 else CpuQuota(quota_us, period_us)
+    return None
+
+
+@cache
+def cpu_stat_path(root: Path = CGROUP_ROOT, self_cgroup: Path = SELF_CGROUP) -> Path | None:
+    """Where this process's cgroup ``cpu.stat`` with throttling counters is (None: nowhere);
+    found once, read at every job."""
+    own = _own_cgroups(self_cgroup)
+    candidates = [root / own.get("", ""), root]
+    for mount in (root / "cpu", root / "cpu,cpuacct"):
+        candidates += [mount / own.get("cpu", ""), mount]
+    for base in candidates:
+        try:
+            text = (base / "cpu.stat").read_text()
+        except OSError:
+            continue
+        if "throttled_usec" in text or "throttled_time" in text:
+            return base / "cpu.stat"
+    return None
+
+
+_stat_fd: dict[Path, int] = {}
+
+
+def read_cpu_stat() -> dict[str, int] | None:
+    """This process's cgroup ``cpu.stat`` (v2: ``throttled_usec``, ``nr_throttled``; v1:
+    ``throttled_time`` ns, ``nr_throttled``), None where not visible. The file stays open: a
+    re-read from offset 0 costs a few microseconds, an open tens, and nodes read it twice a job."""
+    path = cpu_stat_path()
+    if path is None:
+        return None
+    try:
+        fd = _stat_fd.get(path)
+        if fd is None:
+            fd = _stat_fd[path] = os.open(path, os.O_RDONLY)
+        text = os.pread(fd, 4096, 0).decode()
+    except OSError:
+        return None
+    stat = {}
+    for line in text.splitlines():
+        name, _, value = line.partition(" ")
+        if value.strip().lstrip("-").isdigit():
+            stat[name] = int(value)
+    return stat
+
+
+def read_throttled_ns() -> int | None:
+    """Cumulative CPU-quota throttling of this process's cgroup, ns (None if not visible)."""
+    stat = read_cpu_stat()
+    if stat is None:
+        return None
+    if "throttled_usec" in stat:
+        return stat["throttled_usec"] * 1000
+    return stat.get("throttled_time")
+
+
+def _thread_clock_id(tid: int) -> int:
+    """The clock id of another thread's CPU clock (Linux MAKE_THREAD_CPUCLOCK(tid, SCHED)); the
+    kernel lets a process read the CPU clocks of its own threads."""
+    return ((~tid) << 3) | 4 | 2
+
+
+def _read_comm(path: str) -> str | None:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return None
+
+
+@dataclass(frozen=True)
+class CpuSample:
+    """CPU time a job used, ns: on the thread that ran it and on each library worker thread."""
+
+    own_ns: int
+    helpers_ns: tuple[int, ...] = ()
+
+    @property
+    def total_ns(self) -> int:
+        return self.own_ns + sum(self.helpers_ns)
+
+    @property
+    def longest_ns(self) -> int:
+        """The busiest thread's CPU time: the job cannot be shorter, however many cores."""
+        return max((self.own_ns, *self.helpers_ns))
+
+
+class CpuClock(Protocol):
+    """Measures the CPU time of a job run by the calling thread."""
+
+    def start(self) -> Any: ...
+
+    def stop(self, token: Any) -> CpuSample: ...
+
+
+class ThreadCpuClock:
+    """The calling thread's CPU clock plus the CPU clocks of the library worker threads.
+
+    Worker threads are the process's unnamed native threads: OpenCV's, ONNX Runtime's and BLAS
+    pools start threads that keep the process's name. Runtimes name theirs (zenoh's ``rx-0``,
+    ``net-0``, ``app-0``...), and threads started from Python are known to ``threading``: neither
+    kind ever counts. A federate runs its pools at the node's cores (one thread where cpus <= 1),
+    so on a one-core node the worker threads stay idle and a job's CPU time is its thread's."""
+
+    def __init__(self) -> None:
+        self._comm = _read_comm("/proc/self/comm")
+        self._runtime: set[int] = set()  # named threads, never a job's
+        self._workers: set[int] = set()  # unnamed native threads seen twice
+        self._unnamed_once: set[int] = set()  # a new thread may not have named itself yet
+
+    def workers(self) -> list[int]:
+        """Thread ids of this process's library worker threads (the caller excluded)."""
+        me = threading.get_native_id()
+        try:
+            tids = [int(t) for t in os.listdir("/proc/self/task")]
+        except OSError:
+            return []
+        python = {t.native_id for t in threading.enumerate()}
+        out = []
+        for tid in tids:
+            if tid == me or tid in self._runtime or tid in python:
+                continue
+            if tid not in self._workers:
+                comm = _read_comm(f"/proc/self/task/{tid}/comm")
+                if comm is None:
+                    continue  # gone
+                if comm != self._comm:
+                    self._runtime.add(tid)
+                    continue
+                if tid in self._unnamed_once:
+                    self._workers.add(tid)
+                else:
+                    self._unnamed_once.add(tid)
+            out.append(tid)
+        return out
+
+    @staticmethod
+    def _thread_ns(tid: int) -> int | None:
+        try:
+            return time.clock_gettime_ns(_thread_clock_id(tid))
+        except OSError:
+            return None  # the thread has exited
+
+    def start(self) -> tuple[dict[int, int], int]:
+        before = {tid: ns for tid in self.workers() if (ns := self._thread_ns(tid)) is not None}
+        return before, time.thread_time_ns()
+
+    def stop(self, token: tuple[dict[int, int], int]) -> CpuSample:
+        own = time.thread_time_ns() - token[1]
+        before = token[0]
+        helpers = []
+        for tid in self.workers():
+            ns = self._thread_ns(tid)
+            if ns is not None and ns > before.get(tid, 0):  # a thread started by the job: all of it
+                helpers.append(ns - before.get(tid, 0))
+        return CpuSample(own, tuple(helpers))
+
+
+@dataclass(slots=True)
+class JobRecord:
+    """One job's timing, simulated microseconds except where named otherwise (``cpu_us`` and
+    ``wall_us`` are host time: the job's CPU time on every thread it used, and its wall time)."""
+
+    node: str
+    kind: str
+    arrival_us: int
+    start_us: int
+    end_us: int
+    queue_us: int
+    duration_us: int
+    cpu_us: int
+    wall_us: int
+    throttled_us: int | None
+    timing: str
+
+
+class ComputeNode:
+    """The emulated processor of one node.
+
+    ``host`` (this host's score), ``clock`` (the job CPU clock) and ``probe`` (a short speed
+    measurement) are injectable; by default the score comes from ``host_speed.host_score()``
+    (``COSIM5G_HOST_SCORE``, the cache or a measurement), only for ``cpu`` and ``wall`` timing."""
+
+    def __init__(self, node: str, profile: NodeProfile, rng: np.random.Generator, *,
+                 host: HostScore | None = None, clock: CpuClock | None = None,
+                 probe: Callable[[], float] | None = None) -> None:
+        self.node = node
+        self.profile = profile
+        self.cores = max(1, math.ceil(profile.cpus))
+        self.core_speed = profile.cpus / self.cores  # reference cores per emulated core
+        self._free_at = [0] * self.cores
+        self._rng = rng
+        self._cgroup_visible = read_throttled_ns() is not None
+        self.records: list[JobRecord] = []
+        self.measured = profile.timing != "model"
+        self.scale = 1.0
+        self.quota: CpuQuota | None = None
+        self.probes: list[tuple[int, float]] = []
+        self._probe_fn = probe or host_speed.probe
+        self._next_probe_us = 0
+        if self.measured:
+            self._clock: CpuClock = clock or ThreadCpuClock()
+            self.reference = host_speed.reference()
+            self.host = host or host_speed.host_score()
+            self.scale = self.host.score / self.reference.score
+            self._probe(0)
+
+    @property
+    def threads(self) -> int:
+        """Threads a job's library pools may use: the node's emulated cores."""
+        return self.cores
+
+    def run(self, kind: str, arrival_us: int, fn: Callable[..., T], *args: Any) -> tuple[T, int]:
+        """Run ``fn(*args)`` now (for real) as a job arriving at ``arrival_us``; returns its result
+        and the simulated time at which it is done."""
+        if self.profile.timing == "wall" and self.quota is None:
+            # Checked at the first job rather than at start: a window's error reaches the run's
+            # reason, a failed start only the federate's log.
+            self.quota = self._wall_quota()
+        core = min(range(self.cores), key=lambda c: self._free_at[c])
+        start = max(arrival_us, self._free_at[core])
+        throttled0 = read_throttled_ns() if self._cgroup_visible else None
+        if self.measured:
+            token = self._clock.start()
+            wall0 = time.perf_counter_ns()
+            result = fn(*args)
+            wall_ns = max(1, time.perf_counter_ns() - wall0)
+            cpu = self._clock.stop(token)
+        else:  # the duration is drawn; the thread clock is kept for information only
+            cpu0, wall0 = time.thread_time_ns(), time.perf_counter_ns()
+            result = fn(*args)
+            cpu = CpuSample(time.thread_time_ns() - cpu0)
+            wall_ns = max(1, time.perf_counter_ns() - wall0)
+        throttled = None
+        if throttled0 is not None:
+            after = read_throttled_ns()
+            throttled = None if after is None else (after - throttled0) // 1000
+        duration = self._duration_us(kind, cpu, wall_ns)
+        end = start + duration
+        self._free_at[core] = end
+        labels = (self.node, kind)
+        metrics.JOB_DURATION.labels(*labels).observe(duration / 1e6)
+        metrics.JOB_QUEUE.labels(*labels).observe((start - arrival_us) / 1e6)
+        metrics.JOB_CPU.labels(*labels).inc(cpu.total_ns / 1e9)
+        if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
+            metrics.JOB_THROTTLED.labels(*labels).inc(max(0, throttled) / 1e6)
+        self.records.append(JobRecord(
+            node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
+            queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu.total_ns // 1000,
+            wall_us=wall_ns // 1000, throttled_us=throttled, timing=self.profile.timing,
+        ))
+        if self.measured and arrival_us >= self._next_probe_us:
+            self._probe(arrival_us)
+        return result, end
+
+    def cpu_duration_us(self, cpu: CpuSample) -> float:
+        """A job's duration on this node in host time: its CPU time over the node's speed, spread
+        over the threads it used but no more than the node's cores."""
+        return max(cpu.longest_ns, cpu.total_ns / self.cores) / 1000 / self.core_speed
+
+    def _duration_us(self, kind: str, cpu: CpuSample, wall_ns: int) -> int:
+        mode = self.profile.timing
+        if mode == "model":
+            dist = self.profile.model_us.get(kind) or DEFAULT_JOB_MODELS.get(kind)
+            if dist is None:
+                raise KeyError(
+                    f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
+                    f"(has: {sorted(self.profile.model_us)})"
+                )
+            draw = self._rng.normal(dist.mean_us, dist.sd_us) if dist.sd_us else dist.mean_us
+            return max(1, int(round(max(draw, dist.mean_us * 0.1))))
+        ideal_us = self.cpu_duration_us(cpu)
+        if mode == "wall":
+            assert self.quota is not None
+            shortest_us = WALL_MIN_PERIODS * self.quota.period_us
+            if ideal_us < shortest_us:
+                raise WallTimingRefused(
+                    f"{self.node}: timing 'wall' refused for {kind!r} jobs: this one takes "
+                    f"{ideal_us / 1000:.2f} ms at cpus={self.profile.cpus} (CPU {cpu.total_ns / 1e6:.2f} ms, "
+                    f"wall {wall_ns / 1e6:.2f} ms), shorter than {WALL_MIN_PERIODS} CFS periods of "
+                    f"{self.quota.period_us / 1000:g} ms ({shortest_us / 1000:g} ms): a job that short "
+                    "finishes inside a period's quota without being throttled, so its wall time does "
+                    "not show the node's speed; use timing 'cpu' (the default) or 'model'")
+            return max(1, int(round(wall_ns / 1000 * self.scale)))
+        return max(1, int(round(ideal_us * self.scale)))
+
+    def _wall_quota(self) -> CpuQuota:
+        quota = read_cpu_quota()
+        cpus = self.profile.cpus
+        if quota is None:
+            raise WallTimingRefused(
+                f"{self.node}: timing 'wall' needs the node inside a CPU-limited cgroup (the docker "
+                f"runtime makes one from the profile's cpus); none is visible here, so wall time "
+                f"would not show cpus={cpus}: use timing 'cpu' (the default) or 'model'")
+        if abs(quota.cpus - cpus) > QUOTA_TOLERANCE * cpus:
+            raise WallTimingRefused(
+                f"{self.node}: timing 'wall' needs the cgroup's CPU quota to match cpus={cpus}, "
+                f"but it gives {quota.cpus:.3f} cpus ({quota.quota_us} us per {quota.period_us} us "
+                "period): use timing 'cpu' (the default) or run the node in the docker runtime")
+        return quota
+
+    def _probe(self, t_us: int) -> None:
+        self.probes.append((t_us, float(self._probe_fn())))
+        self._next_probe_us = t_us + PROBE_PERIOD_US
+
+    def speed_summary(self, t_us: int | None = None) -> dict[str, Any]:
+        """The node's speed for the run's KPIs: the score its durations were scaled by, the
+        reference, the scale, the speed probed during the run (a last probe at ``t_us``) and
+        whether it drifted more than ``DRIFT_LIMIT`` (then its compute latencies are suspect)."""
+        if not self.measured:
+            return {"timing": "model", "host_independent": True}
+        if t_us is not None and (not self.probes or self.probes[-1][0] < t_us):
+            self._probe(t_us)
+        scores = [s for _, s in self.probes]
+        ratios = [s / self.host.score for s in scores]
+        worst = max(ratios, key=lambda r: abs(r - 1.0))
+        flagged = abs(worst - 1.0) > DRIFT_LIMIT
+        out: dict[str, Any] = {
+            "timing": self.profile.timing,
+            "cpus": self.profile.cpus,
+            "host_score": round(self.host.score, 2),
+            "host_score_source": self.host.source,
+            "host_score_measured_at": self.host.measured_at,
+            "cpu_model": self.host.env.get("cpu_model") or host_speed.cpu_model(),
+            "reference_score": round(self.reference.score, 2),
+            "reference_cpu_model": self.reference.env.get("cpu_model", ""),
+            "scale": round(self.scale, 4),
+            "run_score_median": round(statistics.median(scores), 2),
+            "run_score_min": round(min(scores), 2),
+            "run_score_max": round(max(scores), 2),
+            "drift": round(worst - 1.0, 4),
+            "drift_limit": DRIFT_LIMIT,
+            "flagged": flagged,
+            "probes": [[t, round(s, 2)] for t, s in self.probes],
+        }
+        if flagged:
+            out["warning"] = (
+                f"{self.node}: speed during the run {worst - 1.0:+.0%} from the score its durations "
+                f"were scaled by ({self.host.score:.1f}): the host was contended or changed speed; "
+                "this run's compute latencies of this node cannot be trusted")
+        return out
+
+    def record_dicts(self) -> list[dict[str, Any]]:
+        return [asdict(r) for r in self.records]

@@ -1,0 +1,404 @@
+"""The federate base: the conservative window protocol of DESIGN 3, shared by every federate.
+
+A federate receives ``advance(t_end, expected_in)``, waits until it holds every data message sent
+to it so far (count-based barrier), then processes every input and internal event with time
+< t_end in (t_us, source, seq) order -- never arrival order -- and replies ``done`` with the
+cumulative count of messages it sent per destination and its next event time. Every message it
+sends must be delivered at or after the end of the current window; breaking that is a bug and
+fails the federate at once. Each processed and sent event feeds the federate's trace hash.
+
+A message the federate cannot handle (unknown kind, missing field, undecodable bytes) fails it with
+an error naming the federate and the message kind, reported to the coordinator in ``done``.
+
+Records stream to disk while the run goes (``fabric.tables``): a federate appends rows
+to its tables, which are written in bounded batches, at the latest every ``FLUSH_EVERY_US`` of
+simulated time, and closed when it stops or fails.
+
+A federate never outlives its coordinator: it watches the coordinator's liveliness token and
+leaves (after writing its records) when the token vanishes, or when none appeared within
+``COORDINATOR_WAIT_S`` of connecting.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import heapq
+import logging
+import os
+import queue
+import resource
+import sys
+import time
+import traceback
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import msgpack
+
+from fabric import keys, metrics
+from fabric.bus import Bus
+from fabric.messages import Advance, Done, Message, MessageError, Ready, Stop, Stopped
+from fabric.seeding import rng
+from fabric.tables import FLUSH_EVERY_US, TABLES, TableWriter, part_path
+from scenario.schema import Scenario
+
+if TYPE_CHECKING:
+    from fabric.compute import ComputeNode
+
+log = logging.getLogger(__name__)
+
+
+class CausalityError(RuntimeError):
+    """A federate tried to deliver a message inside the current window or in the past."""
+
+
+class MessageRejected(ValueError):
+    """A message the federate cannot handle: unexpected kind or malformed body."""
+
+
+EXIT_FAILED = 1
+EXIT_ORPHANED = 3  # the coordinator vanished: records written, nobody to report to
+# The coordinator's token must be seen this soon after connecting (it exists before any federate
+# starts); a federate that never sees it was started for a run that is already gone.
+COORDINATOR_WAIT_S = 10.0
+_POLL_S = 0.5
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
+
+
+@dataclass(frozen=True)
+class FederateContext:
+    """What a federate is given at start: who it is and where it runs."""
+
+    name: str
+    run_id: str
+    scenario: Scenario
+    results_dir: Path
+
+
+_EVENT = 0  # heap entry kinds; internal events sort with the federate's own name as source
+_MESSAGE = 1
+_LAST = "\uffff"  # sorts after every federate name
+
+
+class Federate:
+    """Base class. Subclasses override ``setup``, ``on_message``, ``finish``; they schedule
+    internal events with ``schedule`` and send with ``send``; ``now`` is the current time."""
+
+    role = "federate"
+    data_planes: tuple[str, ...] = ("sense", "act", "net")
+
+    def __init__(self, ctx: FederateContext, bus: Bus) -> None:
+        self.ctx = ctx
+        self.name = ctx.name
+        self.scenario = ctx.scenario
+        self.bus = bus
+        self.now = 0
+        self.window_end = 0
+        self._heap: list[tuple[int, str, int, int, Any]] = []
+        self._inbox: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
+        # Received data messages counted by the window they were sent in: a message sent in the
+        # current window that overtakes a late one from an earlier window must not satisfy the
+        # barrier in its place.
+        self._received_settled = 0
+        self._received_by_window: Counter[int] = Counter()
+        self._window = 0
+        self._sent_to: Counter[str] = Counter()
+        self._out_seq = 0
+        self._event_seq = 0
+        self._earliest_sent: int | None = None
+        self._trace = hashlib.sha256()
+        self._events = 0
+        self._stopped = False
+        self._busy_s = 0.0  # wall time spent processing windows: where a slow run's time goes
+        self._tables: dict[str, TableWriter] = {}
+        self._job_nodes: list[ComputeNode] = []
+        self._next_flush_us = FLUSH_EVERY_US
+        self._coordinator_seen = False
+        # Called (from any thread) when the coordinator is lost, with the reason: the process
+        # entry point arms a hard exit there, in case the federate is stuck in a window.
+        self.on_orphaned: Callable[[str], None] | None = None
+
+    # ---- for subclasses -------------------------------------------------------------------
+    def setup(self) -> None:
+        """Heavy initialisation (models, renderers) before the federate reports ready."""
+
+    def on_message(self, msg: Message) -> None:
+        """Handle one data message at ``self.now == msg.t_us``."""
+
+    def finish(self, reason: str) -> dict[str, Any]:
+        """Append the last records; return a summary for the coordinator (numbers, strings)."""
+        return {}
+
+    def close(self) -> None:
+        """Release what must be released in the serving thread (e.g. a GL context), on every way
+        out of ``serve``."""
+
+    def collect_records(self) -> None:
+        """Move records kept elsewhere (e.g. in a model) into the tables; called before every
+        flush and before ``finish``."""
+
+    # ---- records ------------------------------------------------------------------------------
+    def table(self, name: str) -> TableWriter:
+        """This federate's writer of the run table ``name`` (one of ``tables.TABLES``)."""
+        writer = self._tables.get(name)
+        if writer is None:
+            if name not in TABLES:
+                raise KeyError(f"{self.name}: no run table {name!r} (tables: {', '.join(TABLES)})")
+            writer = TableWriter(part_path(self.results_dir, name, self.name), TABLES[name],
+                                 name, lambda: self.now)
+            self._tables[name] = writer
+        return writer
+
+    def record_jobs(self, *nodes: ComputeNode) -> None:
+        """Stream the job records of ``nodes`` into the ``jobs`` table."""
+        self._job_nodes.extend(nodes)
+        self.table("jobs")
+
+    def _drain_jobs(self) -> None:
+        if not self._job_nodes:
+            return
+        jobs = self.table("jobs")
+        for node in self._job_nodes:
+            if node.records:
+                jobs.extend(node.record_dicts())
+                node.records.clear()
+
+    def flush_records(self) -> None:
+        """Write every table's buffered rows (a batch each): complete up to the window end."""
+        self.collect_records()
+        self._drain_jobs()
+        for writer in self._tables.values():
+            writer.flush(self.window_end)
+
+    def _close_records(self, collect: bool = True, upto_us: int | None = None) -> None:
+        """Write what is left and close every table; each table's error is logged, not raised,
+        so that one broken table does not cost the others their rows. ``upto_us``: how far the
+        records go (default: the last event processed)."""
+        if collect:
+            try:
+                self.collect_records()
+            except Exception:
+                log.exception("%s: collecting the last records failed", self.name)
+        try:
+            self._drain_jobs()
+        except Exception:
+            log.exception("%s: collecting the last job records failed", self.name)
+        for name, writer in self._tables.items():
+            try:
+                writer.close(upto_us)
+            except Exception:
+                log.exception("%s: closing table %s failed", self.name, name)
+
+    def records_written(self) -> dict[str, int]:
+        return {name: w.rows_written for name, w in sorted(self._tables.items())}
+
+    def rng(self, component: str) -> Any:
+        """The named random stream ``<federate>/<component>`` of this run."""
+        return rng(self.scenario.seed, f"{self.name}/{component}")
+
+    @property
+    def results_dir(self) -> Path:
+        return self.ctx.results_dir
+
+    def schedule(self, t_us: int, fn: Callable[..., None], *args: Any, after_inputs: bool = False) -> None:
+        """Run ``fn(*args)`` at simulated time ``t_us`` (>= now). Events at equal times run in
+        scheduling order; ``after_inputs`` puts the event after every input message of that
+        time (e.g. a radio slot that must see every packet handed over at its start)."""
+        if t_us < self.now:
+            raise CausalityError(f"{self.name}: event scheduled at {t_us} us, before now {self.now} us")
+        self._event_seq += 1
+        src = _LAST if after_inputs else self.name
+        heapq.heappush(self._heap, (t_us, src, self._event_seq, _EVENT, (fn, args)))
+
+    def send(self, dst: str, plane: str, kind: str, t_us: int, body: dict[str, Any] | None = None,
+             blob: bytes | None = None) -> None:
+        """Send a data message to ``dst`` to be delivered at ``t_us`` (>= end of this window)."""
+        if t_us < self.window_end:
+            raise CausalityError(
+                f"{self.name}: {kind} to {dst} delivered at {t_us} us, inside the window ending "
+                f"{self.window_end} us (latency below the window)"
+            )
+        self._out_seq += 1
+        msg = Message(t_us, self.name, dst, self._out_seq, plane, kind, body or {}, blob, self._window)
+        raw = msg.encode()
+        self._trace.update(b"S")
+        self._trace.update(raw)
+        self._sent_to[dst] += 1
+        if self._earliest_sent is None or t_us < self._earliest_sent:
+            self._earliest_sent = t_us
+        self.bus.publish(keys.data(self.ctx.run_id, plane, dst, self.name), raw)
+        metrics.MESSAGES_SENT.labels(self.name, plane).inc()
+
+    # ---- protocol -----------------------------------------------------------------------------
+    def _enqueue(self, kind: str) -> Callable[[str, bytes], None]:
+        def put(key: str, payload: bytes) -> None:
+            self._inbox.put((kind, key, payload))
+
+        return put
+
+    def connect(self) -> None:
+        """Subscribe to the inbox and control keys and declare the liveliness token."""
+        run = self.ctx.run_id
+        for plane in self.data_planes:
+            self.bus.subscribe(keys.inbox(run, plane, self.name), self._enqueue("data"))
+        self.bus.subscribe(keys.advance(run), self._enqueue("advance"))
+        self.bus.subscribe(keys.stop(run), self._enqueue("stop"))
+        self.bus.watch_liveliness(keys.coordinator_alive(run), self._on_coordinator)
+        self.bus.declare_token(keys.alive(run, self.name))
+
+    def _on_coordinator(self, key: str, alive: bool) -> None:
+        if alive:
+            self._coordinator_seen = True
+        else:
+            self.abandon("the coordinator's liveliness token vanished (coordinator died or "
+                         "disconnected)")
+
+    def abandon(self, reason: str) -> None:
+        """Leave as soon as the current window is over: write the records, exit. Thread-safe
+        (called from transport threads and signal handlers)."""
+        self._inbox.put(("abandon", reason, b""))
+        if self.on_orphaned is not None:
+            self.on_orphaned(reason)
+
+    def serve(self) -> int:
+        """Run the federate until the coordinator stops it; returns a process exit code."""
+        try:
+            return self._serve()
+        finally:
+            self.close()
+
+    def _serve(self) -> int:
+        run = self.ctx.run_id
+        self.connect()
+        self.setup()
+        self.bus.publish(keys.ready(run, self.name), Ready(federate=self.name, pid=os.getpid()).encode())
+        pending: Advance | None = None
+        wait_until = time.monotonic() + COORDINATOR_WAIT_S
+        while True:
+            try:
+                kind, key, payload = self._inbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if not self._coordinator_seen and time.monotonic() > wait_until:
+                    self.abandon(f"no coordinator token ({keys.coordinator_alive(run)}) within "
+                                 f"{COORDINATOR_WAIT_S:.0f} s of connecting")
+                continue
+            if kind == "abandon":
+                return self._leave(key)
+            try:
+                if kind == "data":
+                    msg = Message.decode(payload)
+                    heapq.heappush(self._heap, (msg.t_us, msg.src, msg.seq, _MESSAGE, msg))
+                    self._received_by_window[msg.window] += 1
+                elif kind == "advance":
+                    pending = Advance.decode(payload)
+                elif kind == "stop":
+                    stop = Stop.decode(payload)
+                    return self._stop(stop.reason, stop.t_us)
+            except (MessageError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+                what = "data message" if kind == "data" else f"{kind} message"
+                return self._fail(pending, f"{self.name}: undecodable {what} on {key}: {exc}")
+            if pending is not None and self._received_before(pending.window) >= pending.expected_in.get(self.name, 0):
+                try:
+                    t0 = time.perf_counter()
+                    done = self.process_window(pending)
+                    self._busy_s += time.perf_counter() - t0
+                except Exception as exc:
+                    log.error("window %d failed:\n%s", pending.window, traceback.format_exc())
+                    return self._fail(pending, f"{type(exc).__name__}: {exc}")
+                self.bus.publish(keys.done(run, self.name), done.encode())
+                pending = None
+
+    def _fail(self, pending: Advance | None, error: str) -> int:
+        """Report ``error`` to the coordinator as this window's ``done``, keep the records."""
+        window = pending.window if pending is not None else self._window
+        t_end = pending.t_end_us if pending is not None else self.window_end
+        done = Done(federate=self.name, window=window, t_end_us=t_end, sent_to={}, next_event_us=None,
+                    earliest_sent_us=None, error=error)
+        self.bus.publish(keys.done(self.ctx.run_id, self.name), done.encode())
+        self._close_records()
+        return EXIT_FAILED
+
+    def _leave(self, reason: str) -> int:
+        """The coordinator is gone: write what was recorded up to now and exit."""
+        log.warning("%s leaves at %d us: %s", self.name, self.now, reason)
+        self._stop(f"coordinator lost: {reason}", self.now)
+        return EXIT_ORPHANED
+
+    def _received_before(self, window: int) -> int:
+        """Data messages received that were sent in windows before ``window``."""
+        for w in [w for w in self._received_by_window if w < window]:
+            self._received_settled += self._received_by_window.pop(w)
+        return self._received_settled
+
+    def process_window(self, adv: Advance) -> Done:
+        """Process every event with time < ``adv.t_end_us`` in order; the done report."""
+        self._window = adv.window
+        self.window_end = adv.t_end_us
+        self._earliest_sent = None
+        events_before = self._events
+        heap = self._heap
+        while heap and heap[0][0] < adv.t_end_us:
+            t_us, src, seq, kind, item = heapq.heappop(heap)
+            if t_us < self.now:
+                raise CausalityError(f"{self.name}: event at {t_us} us arrived after now {self.now} us")
+            self.now = t_us
+            self._events += 1
+            if kind == _MESSAGE:
+                self._trace.update(b"R")
+                self._trace.update(msgpack.packb([t_us, src, seq, item.kind], use_bin_type=True))
+                try:
+                    self.on_message(item)
+                except (CausalityError, MessageRejected):
+                    raise
+                except Exception as exc:
+                    raise MessageRejected(
+                        f"{self.name}: cannot handle {item.kind!r} message from {src} at {t_us} us: "
+                        f"{type(exc).__name__}: {exc}") from exc
+            else:
+                fn, args = item
+                self._trace.update(b"E")
+                self._trace.update(msgpack.packb([t_us, seq, fn.__name__], use_bin_type=True))
+                fn(*args)
+        metrics.WINDOWS.labels(self.name).inc()
+        metrics.EVENTS.labels(self.name).inc(self._events - events_before)
+        if adv.t_end_us >= self._next_flush_us:
+            self.flush_records()
+            self._next_flush_us = adv.t_end_us + FLUSH_EVERY_US
+        next_event = heap[0][0] if heap else None
+        return Done(federate=self.name, window=adv.window, t_end_us=adv.t_end_us,
+                    sent_to=dict(self._sent_to), next_event_us=next_event,
+                    earliest_sent_us=self._earliest_sent)
+
+    def unexpected(self, msg: Message) -> MessageRejected:
+        """The error for a message of a kind this federate does not take."""
+        return MessageRejected(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
+
+    def _stop(self, reason: str, t_us: int) -> int:
+        if self._stopped:
+            return 0
+        self._stopped = True
+        try:
+            self.collect_records()
+            summary = self.finish(reason)
+        finally:
+            self._close_records(collect=False, upto_us=self.window_end)
+        summary["busy_wall_s"] = round(self._busy_s, 3)
+        summary["cpu_s"] = round(time.process_time(), 3)
+        summary["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        summary["records"] = self.records_written()
+        record = Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
+                         summary=summary)
+        self.bus.publish(keys.stopped(self.ctx.run_id, self.name), record.encode())
+        return 0
+
+    @property
+    def trace_hash(self) -> str:
+        return self._trace.hexdigest()

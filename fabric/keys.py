@@ -1,0 +1,88 @@
+"""Every zenoh key expression of the platform, built in one place.
+
+Layout: ``cosim/<run_id>/<plane>/...``, lower case, no trailing slash. Data planes address a
+destination federate first so that one subscription per plane gives a federate its inbox:
+``cosim/<run>/<plane>/<dst>/<src>``. Control keys live on ``ctl``, liveliness tokens on ``alive``.
+"""
+
+from __future__ import annotations
+
+import re
+
+ROOT = "cosim"
+DATA_PLANES = ("sense", "act", "net", "obs")
+_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """Return ``name`` if it is a valid key segment, else raise ValueError saying what is allowed."""
+    if not _NAME.match(name):
+        raise ValueError(
+            f"{what} {name!r} is not a valid key segment: use lower-case letters, digits, '-' and '_'"
+        )
+    return name
+
+
+def data(run_id: str, plane: str, dst: str, src: str) -> str:
+    """Key of a data message from ``src`` to ``dst`` on ``plane``."""
+    if plane not in DATA_PLANES:
+        raise ValueError(f"plane {plane!r} is not one of {DATA_PLANES}")
+    return f"{ROOT}/{run_id}/{plane}/{dst}/{src}"
+
+
+def inbox(run_id: str, plane: str, dst: str) -> str:
+    """Subscription for every message addressed to ``dst`` on ``plane``."""
+    return f"{ROOT}/{run_id}/{plane}/{dst}/*"
+
+
+def advance(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/advance"
+
+
+def stop(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/stop"
+
+
+def done(run_id: str, federate: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/done/{federate}"
+
+
+def done_all(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/done/*"
+
+
+def ready(run_id: str, federate: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/ready/{federate}"
+
+
+def ready_all(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/ready/*"
+
+
+def stopped(run_id: str, federate: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/stopped/{federate}"
+
+
+def stopped_all(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/ctl/stopped/*"
+
+
+def alive(run_id: str, federate: str) -> str:
+    return f"{ROOT}/{run_id}/alive/{federate}"
+
+
+def alive_all(run_id: str) -> str:
+    return f"{ROOT}/{run_id}/alive/*"
+
+
+COORDINATOR = "coordinator"  # never a federate's name (scenario.schema names them)
+
+
+def coordinator_alive(run_id: str) -> str:
+    """The coordinator's liveliness token: federates leave when it vanishes."""
+    return f"{ROOT}/{run_id}/alive/{COORDINATOR}"
+
+
+def last_segment(key: str) -> str:
+    """The last segment of a key (the federate name in ctl and alive keys)."""
+    return key.rsplit("/", 1)[-1]

@@ -1,0 +1,272 @@
+"""Result tables: records streamed to disk while a run goes, and Parquet files written atomically.
+
+A federate appends the rows of each of its tables to a part file
+``<run>/tables/<table>-<federate>.arrows`` (Arrow IPC stream format) in bounded record batches:
+a batch is written when it holds ``MAX_BATCH_ROWS`` rows and whenever the federate's simulated
+clock has moved ``FLUSH_EVERY_US`` past the last flush, so its memory stays flat however long the
+run is, and a federate that dies keeps every batch written before it died (a batch cut short by
+the death is dropped when the part is read). The coordinator merges the parts of each table into
+``<run>/<table>.parquet`` when the run ends (``coordinator.results.merge_tables``).
+
+The run's tables and their columns are fixed here (``TABLES``): a row with a column the table does
+not have is a bug and fails at once, and a table has the same columns whether or not any federate
+wrote a row to it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+# A batch is written at the latest after this much simulated time (what a crash can lose) ...
+FLUSH_EVERY_US = 2_000_000
+# ... or as soon as it holds this many rows (what a federate holds in memory per table).
+MAX_BATCH_ROWS = 8192
+PART_SUFFIX = ".arrows"
+
+_I = pa.int64()
+_F = pa.float64()
+_S = pa.string()
+_B = pa.bool_()
+
+TASKS = pa.schema([
+    ("cell", _I), ("task_id", _I), ("spawn_us", _I), ("grasp_us", _I), ("grasp_attempts", _I),
+    ("end_us", _I), ("outcome", _S), ("success", _B), ("reason", _S), ("size_m", _F),
+    ("mass_kg", _F), ("yaw_rad", _F),
+])
+"""Per task (physics): one object's life, from spawn to placed, missed, dropped or unfinished."""
+
+PACKETS = pa.schema([
+    ("packet_id", _I), ("flow", _S), ("ue", _S), ("dir", _S), ("size_bytes", _I),
+    ("enqueue_us", _I), ("deliver_us", _I), ("latency_us", _I), ("lost_cause", _S),
+])
+"""Per IP packet (netsim): delivery time and latency, or the cause of its loss."""
+
+JOBS = pa.schema([
+    ("arrival_us", _I), ("cpu_us", _I), ("duration_us", _I), ("end_us", _I), ("kind", _S),
+    ("node", _S), ("queue_us", _I), ("start_us", _I), ("throttled_us", _I), ("timing", _S),
+    ("wall_us", _I),
+])
+"""Per compute job (every ComputeNode): ``fabric.compute.JobRecord``."""
+
+FRAMES = pa.schema([
+    ("bytes", _I), ("capture_us", _I), ("complete_us", _I), ("detections", _I),
+    ("estimator", _S), ("frame_id", _I), ("kept", _B), ("lost", _B), ("loop", _I),
+    ("packets", _I), ("pdp", _F), ("ready_us", _I),
+])
+"""Per frame: camera rows (pdp, kept, bytes, packets) and Edge rows (complete, detections, lost)."""
+
+TABLES: dict[str, pa.Schema] = {"tasks": TASKS, "packets": PACKETS, "jobs": JOBS, "frames": FRAMES}
+
+
+class TableError(ValueError):
+    """A row that does not fit its table."""
+
+
+def part_path(results_dir: Path, table: str, federate: str) -> Path:
+    """Where ``federate`` streams its rows of ``table``."""
+    return results_dir / "tables" / f"{table}-{federate}{PART_SUFFIX}"
+
+
+class TableWriter:
+    """Appends rows of one table to an Arrow IPC stream file, in batches of bounded size.
+
+    ``clock`` gives the simulated time the rows are recorded up to; each batch carries it so that
+    a reader can tell how far a federate's records go. ``close`` writes what is buffered and an
+    empty final batch marking the part as complete.
+    """
+
+    def __init__(self, path: Path, schema: pa.Schema, name: str, clock: Callable[[], int],
+                 max_rows: int = MAX_BATCH_ROWS) -> None:
+        self.path = path
+        self.schema = schema
+        self.name = name
+        self.clock = clock
+        self.max_rows = max_rows
+        self.rows_written = 0
+        self._rows: list[dict[str, Any]] = []
+        self._columns = set(schema.names)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = pa.OSFile(str(path), "wb")
+        # Compressed batches: the part of the largest table (packets) is a few bytes a row.
+        opts = pa.ipc.IpcWriteOptions(compression="zstd")
+        self._writer: Any = pa.ipc.new_stream(self._file, schema, options=opts)
+        self.closed = False
+
+    def append(self, row: dict[str, Any]) -> None:
+        """Buffer one row; writes a batch when ``max_rows`` are buffered."""
+        self._rows.append(row)
+        if len(self._rows) >= self.max_rows:
+            self.flush()
+
+    def extend(self, rows: list[dict[str, Any]]) -> None:
+        for row in rows:
+            self.append(row)
+
+    def flush(self, upto_us: int | None = None, closing: bool = False) -> None:
+        """Write the buffered rows as one batch (nothing when none are buffered), noting that the
+        records are complete up to ``upto_us`` (default: the clock)."""
+        if self.closed:
+            return
+        meta = {"upto_us": str(self.clock() if upto_us is None else upto_us)}
+        if self._rows:
+            unknown = set().union(*(r.keys() for r in self._rows)) - self._columns
+            if unknown:
+                raise TableError(
+                    f"table {self.name}: no column {', '.join(sorted(unknown))} (columns: "
+                    f"{', '.join(self.schema.names)}); add it to fabric/tables.py")
+            try:
+                batch = pa.RecordBatch.from_pylist(self._rows, schema=self.schema)
+            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+                raise TableError(f"table {self.name}: a row does not fit the columns: {exc}") from exc
+            self._writer.write_batch(batch, custom_metadata=meta)
+            self.rows_written += batch.num_rows
+            self._rows.clear()
+        if closing:
+            meta["complete"] = "1"
+            self._writer.write_batch(pa.RecordBatch.from_pylist([], schema=self.schema),
+                                     custom_metadata=meta)
+
+    def close(self, upto_us: int | None = None) -> None:
+        """Write what is buffered, mark the part complete and close the file."""
+        if self.closed:
+            return
+        try:
+            self.flush(upto_us, closing=True)
+        finally:
+            self.closed = True
+            self._writer.close()
+            self._file.close()
+
+    @property
+    def buffered(self) -> int:
+        return len(self._rows)
+
+
+@dataclass
+class PartInfo:
+    """What a part file holds: rows readable, simulated time recorded up to, cleanly closed."""
+
+    rows: int = 0
+    upto_us: int | None = None
+    complete: bool = False
+    error: str | None = None
+
+
+def read_part(path: Path, info: PartInfo | None = None) -> Iterator[pa.RecordBatch]:
+    """The record batches of a part file, in order; stops quietly at a batch cut short (the
+    writer died while writing it). ``info`` is filled in as batches are read."""
+    info = info if info is not None else PartInfo()
+    try:
+        reader = pa.ipc.open_stream(pa.memory_map(str(path)))
+    except (OSError, pa.ArrowInvalid) as exc:  # died before its schema was on disk
+        info.error = f"unreadable: {exc}"
+        return
+    while True:
+        try:
+            batch, meta = reader.read_next_batch_with_custom_metadata()
+        except StopIteration:
+            return
+        except (OSError, pa.ArrowInvalid) as exc:
+            info.error = f"cut short after {info.rows} rows: {exc}"
+            return
+        if meta is not None:
+            upto = meta.get(b"upto_us")
+            if upto is not None:
+                info.upto_us = int(upto)
+            if meta.get(b"complete") == b"1":
+                info.complete = True
+        info.rows += batch.num_rows
+        if batch.num_rows:
+            yield batch
+
+
+def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
+    """``batch`` with ``schema``'s columns in its order: missing ones null, types cast."""
+    cols = []
+    for f in schema:
+        i = batch.schema.get_field_index(f.name)
+        cols.append(pa.nulls(batch.num_rows, f.type) if i < 0 else batch.column(i).cast(f.type))
+    return pa.RecordBatch.from_arrays(cols, schema=schema)
+
+
+MERGE_ROW_GROUP_ROWS = 65_536
+
+
+def merge_parts(results_dir: Path, table: str, schema: pa.Schema | None = None) -> dict[str, Any]:
+    """Merge the part files of ``table`` into ``<results_dir>/<table>.parquet`` (atomically, a
+    row group at a time, so memory stays flat), then remove the parts.
+
+    Returns ``{"rows": n, "parts": {federate: {"rows", "upto_s", "complete"[, "error"]}}}``. With no
+    part files, an existing merged file is kept (merged before) and a missing one is written
+    empty, with the table's columns.
+    """
+    schema = schema if schema is not None else TABLES[table]
+    out = results_dir / f"{table}.parquet"
+    parts = sorted((results_dir / "tables").glob(f"{table}-*{PART_SUFFIX}"))
+    if not parts and out.exists():
+        return {"rows": pq.ParquetFile(out).metadata.num_rows, "parts": {}}
+    summary: dict[str, Any] = {"rows": 0, "parts": {}}
+    tmp = out.with_suffix(out.suffix + ".tmp")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with pq.ParquetWriter(tmp, schema) as writer:
+        pending: list[pa.RecordBatch] = []
+        pending_rows = 0
+        for path in parts:
+            info = PartInfo()
+            for batch in read_part(path, info):
+                pending.append(conform(batch, schema))
+                pending_rows += batch.num_rows
+                if pending_rows >= MERGE_ROW_GROUP_ROWS:
+                    writer.write_table(pa.Table.from_batches(pending, schema=schema))
+                    pending, pending_rows = [], 0
+            federate = path.name[len(table) + 1:-len(PART_SUFFIX)]
+            entry: dict[str, Any] = {
+                "rows": info.rows, "complete": info.complete,
+                "upto_s": None if info.upto_us is None else info.upto_us / 1e6}
+            if info.error:
+                entry["error"] = info.error
+            summary["parts"][federate] = entry
+            summary["rows"] += info.rows
+        if pending:
+            writer.write_table(pa.Table.from_batches(pending, schema=schema))
+    os.replace(tmp, out)
+    for path in parts:
+        path.unlink(missing_ok=True)
+    return summary
+
+
+def write_table(path: Path, rows: list[dict[str, Any]], schema: pa.Schema | None = None) -> Path:
+    """Write ``rows`` (dicts with the same keys) to Parquet at ``path`` atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if rows:
+        table = pa.Table.from_pylist(rows, schema=schema)
+    else:
+        table = schema.empty_table() if schema is not None else pa.table({})
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """All rows of a Parquet file (empty list if the file does not exist)."""
+    if not path.exists():
+        return []
+    return pq.read_table(path).to_pylist()
+
+
+def write_json(path: Path, data: Any) -> Path:
+    """Write JSON atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,408 @@
+"""The scenario schema: everything a run needs, validated before anything starts.
+
+Unknown fields are rejected, units are in field names, every field has a description, and the
+cross-field rules of the time contract (every cross-federate latency >= the window) are checked
+here, so the CLI and the REST API reject the same mistakes with the same messages.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from scenario.nr import NrConfig
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class JobModel(Strict):
+    """Distribution of a job's emulated duration in ``model`` timing (a normal, truncated)."""
+
+    mean_us: int = Field(gt=0, description="mean emulated duration, microseconds")
+    sd_us: int = Field(default=0, ge=0, description="standard deviation, microseconds")
+
+
+class NodeProfile(Strict):
+    """A compute node's capacity and how its job durations are obtained (DESIGN 5, docs/compute.md).
+
+    ``cpus`` count reference cores, not this host's: each host scores its own speed against the
+    reference core (fabric/host_speed.py) and job CPU times are scaled by it, so one
+    scenario gives the same compute latencies on any host."""
+
+    cpus: float = Field(gt=0, le=64, description="speed in reference cores (fabric/data/"
+                        "reference_core.json): 0.25 is a quarter of the reference core on any host; "
+                        "in the docker runtime also the container's CPU quota, in host cores")
+    mem_mb: int = Field(default=1024, ge=64, description="memory limit, MiB")
+    timing: Literal["wall", "cpu", "model"] = Field(
+        default="cpu", description="cpu: the job's own CPU time (its thread and library workers) "
+        "x host speed / cpus; wall: wall time in the node's CPU-limited cgroup (docker runtime; "
+        "refused for jobs shorter than 5 CFS periods); model: seeded draw (host-independent)"
+    )
+    model_us: dict[str, JobModel] = Field(
+        default_factory=dict, description="per job kind, the duration distribution in model timing"
+    )
+
+
+class Nodes(Strict):
+    """Compute node profiles, in reference cores; ``model`` timing falls back to the platform's
+    measured job models."""
+
+    camera: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=0.25, mem_mb=512),
+                                description="camera node profile")
+    edge: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=1.0, mem_mb=2048),
+                              description="Edge node profile")
+    robot: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=0.25, mem_mb=512),
+                               description="robot node profile")
+
+
+class HallConfig(Strict):
+    """The factory hall and where cells and the gNB stand in it (gives netsim its UE positions)."""
+
+    length_m: float = Field(default=120.0, gt=0, description="hall length (x), metres")
+    width_m: float = Field(default=60.0, gt=0, description="hall width (y), metres")
+    height_m: float = Field(default=10.0, gt=0, description="hall height, metres")
+    gnb_position_m: tuple[float, float, float] = Field(
+        default=(60.0, 30.0, 1.5), description="gNB (and Edge) position, metres"
+    )
+    cell_pitch_m: tuple[float, float] = Field(
+        default=(8.0, 8.0), description="distance between neighbouring cells along x and y, metres"
+    )
+    cells_per_row: int = Field(default=8, ge=1, description="cells per row along x")
+    ue_height_m: float = Field(default=1.5, gt=0, description="camera and robot modem height")
+
+    def cell_origins(self, n: int) -> list[tuple[float, float]]:
+        """Cell centres, a grid centred on the gNB: row-major, ``cells_per_row`` per row."""
+        rows = math.ceil(n / self.cells_per_row)
+        px, py = self.cell_pitch_m
+        per_row = min(n, self.cells_per_row)
+        x0 = self.gnb_position_m[0] - (per_row - 1) * px / 2
+        y0 = self.gnb_position_m[1] - (rows - 1) * py / 2
+        return [(x0 + (i % self.cells_per_row) * px, y0 + (i // self.cells_per_row) * py)
+                for i in range(n)]
+
+
+class CellConfig(Strict):
+    """One conveyor cell: belt, objects, pick zone."""
+
+    belt_speed_m_s: float = Field(default=0.2, gt=0, le=1.0, description="belt speed, m/s")
+    object_period_s: float = Field(default=4.0, gt=0.5, description="time between objects, s")
+    object_jitter_s: float = Field(default=0.0, ge=0, description="uniform jitter on spawn times, s")
+    first_object_s: float = Field(default=0.5, ge=0, description="spawn time of the first object, s")
+    object_size_m: float = Field(default=0.06, gt=0.02, le=0.15, description="object edge length, m")
+    object_mass_kg: float = Field(default=0.3, gt=0, le=5.0, description="object mass, kg")
+    object_size_spread_m: float = Field(
+        default=0.0, ge=0, description="each object's edge length is object_size_m + uniform(+-this), m"
+    )
+    object_mass_spread_kg: float = Field(
+        default=0.0, ge=0, description="each object's mass is object_mass_kg + uniform(+-this), kg"
+    )
+    object_yaw_spread_deg: float = Field(
+        default=0.0, ge=0, le=180, description="each object lies on the belt at yaw uniform(+-this), deg"
+    )
+    object_lateral_spread_m: float = Field(
+        default=0.03, ge=0, le=0.1, description="objects land uniform(+-this) across the belt axis, m"
+    )
+
+    @model_validator(mode="after")
+    def _jitter_fits(self) -> CellConfig:
+        if self.object_jitter_s >= self.object_period_s / 2:
+            raise ValueError(
+                f"object_jitter_s ({self.object_jitter_s}) must be below half object_period_s "
+                f"({self.object_period_s}) so that objects keep their order"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _spreads_fit(self) -> CellConfig:
+        size, ds = self.object_size_m, self.object_size_spread_m
+        if size - ds <= 0.02 or size + ds > 0.15:
+            raise ValueError(
+                f"object_size_m +- object_size_spread_m ({size} +- {ds}) must stay within (0.02, 0.15] m; "
+                f"lower object_size_spread_m"
+            )
+        if self.object_mass_spread_kg >= self.object_mass_kg or self.object_mass_kg + self.object_mass_spread_kg > 5.0:
+            raise ValueError(
+                f"object_mass_kg +- object_mass_spread_kg ({self.object_mass_kg} +- "
+                f"{self.object_mass_spread_kg}) must stay within (0, 5] kg; lower object_mass_spread_kg"
+            )
+        return self
+
+
+class CameraConfig(Strict):
+    """The cell cameras: a D435-class RGB-D sensor and the camera node's compression.
+
+    The defaults give about 35 kB per frame, 8.5 Mbit/s per loop at 30 frame/s, with the sensor
+    model on (measured by ``python -m training.frame_model``, docs in docs/perception.md)."""
+
+    fps: int = Field(default=30, ge=1, le=90, description="frames per second")
+    width_px: int = Field(default=640, ge=64, le=1920, description="image width, pixels")
+    height_px: int = Field(default=360, ge=48, le=1080, description="image height, pixels")
+    fovy_deg: float = Field(default=58.0, gt=10, lt=120, description="vertical field of view, deg")
+    jpeg_quality: int = Field(default=84, ge=10, le=100, description="JPEG quality of the RGB image")
+    depth_codec: Literal["delta-zlib", "png"] = Field(
+        default="delta-zlib", description="lossless depth codec: `delta-zlib` (2-D difference + zlib, "
+        "smallest at PNG's CPU cost) or `png` (16-bit PNG, level 1)")
+    depth_decimation: Literal[1, 2, 4] = Field(
+        default=4, description="depth decimation filter on the camera node (RealSense SDK semantics): "
+        "depth is sent at 1/this of the colour resolution per axis")
+    sensor_model: Literal["d435", "ideal"] = Field(
+        default="d435", description="`d435`: stereo depth noise growing with distance squared, invalid "
+        "pixels (left band, occlusion shadows, depth edges), colour shot and read noise "
+        "(domain/sensor.py); `ideal`: the rendered images as they are")
+    depth_subpixel_px: float = Field(
+        default=0.08, ge=0, le=1.0, description="`d435`: stereo disparity error sd, px (RMS depth error "
+        "= z^2 * this / (focal px * 50 mm baseline))")
+    depth_noise_mm: float = Field(
+        default=0.0, ge=0, description="extra white depth noise sd at 1 m added by the physics renderer, "
+        "mm, on top of `sensor_model` (noise makes 16-bit depth nearly incompressible)")
+    readout_latency_us: int = Field(default=2000, ge=1, description="capture to camera node, us")
+    mtu_bytes: int = Field(default=1500, ge=576, le=9000, description="IP packet size limit, bytes")
+
+
+class RobotConfig(Strict):
+    control_period_us: int = Field(default=10000, ge=1000, description="controller period, us")
+    state_latency_us: int = Field(default=1000, ge=1, description="joint state physics->robot, us")
+    actuation_latency_us: int = Field(default=1000, ge=1, description="robot->physics command, us")
+    max_estimate_age_ms: float = Field(
+        default=400.0, gt=0, description="older pose estimates make the arm hold back"
+    )
+    delay_compensation: bool = Field(
+        default=True, description="predict the object to now from the estimate's capture time"
+    )
+
+
+class EdgeConfig(Strict):
+    estimator: Literal["learned", "classical"] = Field(
+        default="learned", description="pose estimator: `learned` (a small CNN trained on rendered "
+        "frames, domain/models/pose.onnx, run with ONNX Runtime; falls back to `classical` "
+        "with a logged reason when the model is missing) or `classical` (colour segmentation)")
+    policy_period_ms: int = Field(default=50, ge=1, description="co-design policy period, ms")
+    pose_packet_bytes: int = Field(default=120, ge=40, description="IP size of a pose packet")
+    qos_packet_bytes: int = Field(default=60, ge=40, description="IP size of a QoS packet")
+
+
+class PolicyConfig(Strict):
+    """The co-design policy (DESIGN 7)."""
+
+    name: Literal["none", "fixed", "heuristic"] = Field(default="none", description="policy")
+    pdp: float = Field(default=1.0, gt=0, le=1, description="`fixed`: the constant PDP")
+    idle_pdp: float = Field(default=0.2, gt=0, le=1, description="`heuristic`: PDP with no object near")
+    track_pdp: float = Field(default=0.5, gt=0, le=1, description="`heuristic`: PDP while a fresh track approaches")
+    approach_s: float = Field(default=1.0, gt=0, description="`heuristic`: full PDP this long before the grasp")
+    stale_ms: float = Field(default=150.0, gt=0, description="`heuristic`: full PDP when the track is older")
+    latency_budget_ms: float = Field(default=100.0, gt=0, description="L_r signalled with the PDP")
+
+
+class NetsimConfig(Strict):
+    model: Literal["nr", "simple"] = Field(
+        default="nr", description="cell model: `nr` (5G NR system-level: channel, HARQ, link "
+        "adaptation, scheduling) or `simple` (shared capacity per slot)")
+    slot_us: int = Field(default=1000, ge=125, description="slot duration, us (1000 at 15 kHz)")
+    nr: NrConfig = Field(
+        default_factory=NrConfig,
+        description="`nr`: every NR cell parameter (scenario/nr.py); the hall size comes from `hall`")
+    ul_rate_mbps: float = Field(default=178.6, gt=0, description="`simple`: uplink capacity, Mbit/s")
+    dl_rate_mbps: float = Field(default=150.0, gt=0, description="`simple`: downlink capacity, Mbit/s")
+    loss_probability: float = Field(default=0.0, ge=0, lt=1, description="`simple`: per-packet loss")
+    buffer_bytes: int = Field(default=1_000_000, ge=1500, description="`simple`: sender buffer per UE, bytes")
+
+    @model_validator(mode="after")
+    def _nr_slot(self) -> NetsimConfig:
+        if self.model == "nr" and self.nr.slot_us != self.slot_us:
+            raise ValueError(
+                f"netsim.slot_us ({self.slot_us}) must equal the NR slot at "
+                f"{self.nr.subcarrier_spacing_hz} Hz SCS ({self.nr.slot_us} us)"
+            )
+        return self
+
+
+class WatchdogConfig(Strict):
+    ready_timeout_s: float = Field(default=120.0, gt=0, description="all federates ready within")
+    window_timeout_s: float = Field(default=10.0, gt=0, description="a federate answers a window within")
+    run_timeout_s: float = Field(default=3600.0, gt=0, description="wall-clock limit of the run")
+
+
+class Scenario(Strict):
+    """A complete run description."""
+
+    name: str = Field(default="scenario", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="scenario name")
+    seed: int = Field(default=1, ge=0, description="root seed of every random stream")
+    runtime: Literal["process", "docker"] = Field(default="process", description="where federates run")
+    duration_s: float = Field(default=10.0, gt=0, le=86400, description="simulated duration, s")
+    window_us: int = Field(default=1000, ge=10, description="lookahead window W, us")
+    loops: int = Field(default=2, ge=1, le=128, description="number of control loops N")
+    detailed_loops: int = Field(default=1, ge=0, description="loops simulated in detail K <= N")
+    physics_timestep_us: int = Field(default=1000, ge=100, description="MuJoCo timestep, us")
+    hall: HallConfig = Field(default_factory=HallConfig, description="hall layout")
+    cell: CellConfig = Field(default_factory=CellConfig, description="conveyor cells")
+    camera: CameraConfig = Field(default_factory=CameraConfig, description="cameras")
+    robot: RobotConfig = Field(default_factory=RobotConfig, description="robot controllers")
+    edge: EdgeConfig = Field(default_factory=EdgeConfig, description="Edge application")
+    policy: PolicyConfig = Field(default_factory=PolicyConfig, description="co-design policy")
+    netsim: NetsimConfig = Field(default_factory=NetsimConfig, description="network simulator")
+    nodes: Nodes = Field(default_factory=Nodes, description="compute node profiles")
+    watchdog: WatchdogConfig = Field(default_factory=WatchdogConfig, description="failure detection")
+
+    @model_validator(mode="after")
+    def _time_contract(self) -> Scenario:
+        if self.detailed_loops > self.loops:
+            raise ValueError(f"detailed_loops ({self.detailed_loops}) must be <= loops ({self.loops})")
+        w = self.window_us
+        for field, value in (
+            ("camera.readout_latency_us", self.camera.readout_latency_us),
+            ("robot.state_latency_us", self.robot.state_latency_us),
+            ("robot.actuation_latency_us", self.robot.actuation_latency_us),
+            ("netsim.slot_us", self.netsim.slot_us),
+        ):
+            if value < w:
+                raise ValueError(
+                    f"{field} = {value} us is below window_us = {w} us: every message between "
+                    f"federates must arrive at or after the end of the window it was sent in; "
+                    f"raise {field} or lower window_us"
+                )
+        if self.netsim.slot_us % w:
+            raise ValueError(f"window_us ({w}) must divide netsim.slot_us ({self.netsim.slot_us})")
+        if w % self.physics_timestep_us:
+            raise ValueError(
+                f"physics_timestep_us ({self.physics_timestep_us}) must divide window_us ({w})"
+            )
+        self._hall_into_nr()
+        if self.robot.control_period_us % self.physics_timestep_us:
+            raise ValueError("robot.control_period_us must be a multiple of physics_timestep_us")
+        return self
+
+    def _hall_into_nr(self) -> None:
+        """The NR channel model uses the hall of the scenario; a different one is a mistake."""
+        nr = self.netsim.nr
+        hall = {"hall_length_m": self.hall.length_m, "hall_width_m": self.hall.width_m,
+                "hall_height_m": self.hall.height_m}
+        for field, value in hall.items():
+            if field in nr.model_fields_set and getattr(nr, field) != value:
+                raise ValueError(
+                    f"netsim.nr.{field} = {getattr(nr, field)} differs from the hall ({value}): "
+                    f"set the hall size in `hall` only"
+                )
+        if any(getattr(nr, f) != v for f, v in hall.items()):
+            self.netsim.nr = nr.model_copy(update=hall)
+
+    # Derived quantities, integers in microseconds.
+    @property
+    def duration_us(self) -> int:
+        return int(round(self.duration_s * 1_000_000))
+
+    @property
+    def frame_period_us(self) -> int:
+        return int(round(1_000_000 / self.camera.fps))
+
+    def federates(self) -> list[tuple[str, str]]:
+        """(name, role) of every federate of this scenario, in a stable order."""
+        out = [("physics", "physics"), ("netsim", "netsim"), ("edge", "edge")]
+        out += [(f"camera-{i}", "camera") for i in range(self.detailed_loops)]
+        out += [(f"robot-{i}", "robot") for i in range(self.detailed_loops)]
+        if self.loops > self.detailed_loops:
+            out.append(("loops", "loops"))
+        return out
+
+    def ue_positions_m(self) -> dict[str, tuple[float, float, float]]:
+        """Radio endpoints (camera-i, robot-i) and their positions in the hall, metres."""
+        h = self.hall.ue_height_m
+        out: dict[str, tuple[float, float, float]] = {}
+        for i, (x, y) in enumerate(self.hall.cell_origins(self.loops)):
+            out[f"camera-{i}"] = (x - 0.1, y, h)
+            out[f"robot-{i}"] = (x, y + 0.6, h)
+        return out
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be loaded; ``errors`` lists (field, message) pairs."""
+
+    def __init__(self, errors: list[tuple[str, str]]) -> None:
+        self.errors = errors
+        super().__init__("; ".join(f"{f}: {m}" for f, m in errors))
+
+    def format(self) -> str:
+        return "\n".join(f"  {field}: {msg}" for field, msg in self.errors)
+
+
+def _allowed_fields(parent: tuple[Any, ...]) -> list[str]:
+    """Field names of the section at ``parent`` (a pydantic error location)."""
+    model: Any = Scenario
+    for part in parent:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        ann = getattr(field, "annotation", None)
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return []
+        model = ann
+    return sorted(model.model_fields)
+
+
+def _format_validation(exc: ValidationError) -> list[tuple[str, str]]:
+    out = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(scenario)"
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            allowed = _allowed_fields(err["loc"][:-1])
+            msg = f"unknown field; allowed here: {', '.join(allowed)}" if allowed else "unknown field"
+        elif err["loc"] and "input" in err and err["type"] != "missing":
+            msg = f"{msg} (given: {err['input']!r:.60})"
+        out.append((loc, msg))
+    return out
+
+
+def _apply_override(data: dict[str, Any], assignment: str) -> None:
+    if "=" not in assignment:
+        raise ScenarioError([(assignment, "override must look like field.path=value")])
+    path, raw = assignment.split("=", 1)
+    value = yaml.safe_load(raw) if raw != "" else ""
+    node = data
+    default: Any = Scenario().model_dump(mode="json")
+    parts = path.strip().split(".")
+    for part in parts[:-1]:
+        default = default.get(part) if isinstance(default, dict) else None
+        if part not in node:
+            # A section absent from the file starts from its defaults, so that overriding one
+            # field of it keeps the others.
+            node[part] = copy.deepcopy(default) if isinstance(default, dict) else {}
+        child = node[part]
+        if not isinstance(child, dict):
+            raise ScenarioError([(path, f"{part} is not a section")])
+        node = child
+    node[parts[-1]] = value
+
+
+def parse_scenario(data: Any, overrides: list[str] | None = None) -> Scenario:
+    """Validate a scenario mapping (plus ``field.path=value`` overrides) or raise ScenarioError."""
+    if not isinstance(data, dict):
+        raise ScenarioError([("(scenario)", f"expected a mapping of fields, got {type(data).__name__}")])
+    data = copy.deepcopy(data)
+    for assignment in overrides or []:
+        _apply_override(data, assignment)
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(_format_validation(exc)) from None
+
+
+def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:
+    """Load a YAML scenario file, apply overrides, validate."""
+    p = Path(path)
+    if not p.is_file():
+        raise ScenarioError([("file", f"{p} does not exist")])
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ScenarioError([("file", f"{p} is not valid YAML: {exc}")]) from None
+    return parse_scenario(data, overrides)
+
+
+def dump_scenario(scenario: Scenario) -> str:
+    """The resolved scenario as YAML (every field, defaults included)."""
+    return yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False)

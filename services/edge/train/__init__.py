@@ -1,3 +1,0 @@
-"""Training of the Edge pose network on frames rendered by our scene (needs torch; the runtime
-does not): ``dataset`` renders labelled frames, ``model`` is the network, ``train`` trains and
-exports ``services/edge/models/pose.onnx`` with its record ``pose.json``."""
