@@ -257,7 +257,7 @@ def test_cfs_wall_time_tracks_quota(launcher: DockerLauncher, run_id: str, tmp_p
     """A ~70 ms CPU-bound job takes about cpu_time / cpus of wall time at a 10 ms CFS period."""
     probe = tmp_path / "cfs_probe.py"
     shutil.copy(Path(__file__).with_name("cfs_probe.py"), probe)
-    launcher._start([FederateSpec("probe", "edge", NodeLimits(cpus=cpus))], run_id, tmp_path,
+    launcher._start([FederateSpec("probe", "edge", NodeLimits(cpus=cpus, timing="wall"))], run_id, tmp_path,
                     lambda s: ["python", str(probe), "10"])
     reason = _wait_for(lambda: launcher.dead().get("probe"), timeout_s=60)
     assert reason.startswith("exited with code 0"), launcher.last_log_lines("probe")
@@ -269,7 +269,7 @@ def test_cfs_wall_time_tracks_quota(launcher: DockerLauncher, run_id: str, tmp_p
 
 def test_cpu_throttling_counters(launcher: DockerLauncher, run_id: str, tmp_path: Path) -> None:
     busy = ["python", "-c", "while True: pass"]
-    launcher._start([FederateSpec("busy", "edge", NodeLimits(cpus=0.25))], run_id, tmp_path,
+    launcher._start([FederateSpec("busy", "edge", NodeLimits(cpus=0.25, timing="wall"))], run_id, tmp_path,
                     lambda s: busy)
     c = launcher.container("busy")
     first = _wait_for(lambda: (t := container_cpu_throttling(c)).throttled_periods > 10 and t)

@@ -3,6 +3,7 @@ profiles' cgroup limits, and a killed container failing its run quickly and leav
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,9 @@ def test_smoke_runs_in_containers_with_the_camera_profile_limits(docker_client: 
     host = inspected["HostConfig"]
     profile = sc.nodes.camera
     assert host["CpuPeriod"] == 10_000
-    assert host["CpuQuota"] == int(profile.cpus * 10_000)
+    # A cpu-timed node (the default) gets whole cores: its durations come from CPU time.
+    assert profile.timing == "cpu"
+    assert host["CpuQuota"] == math.ceil(profile.cpus) * 10_000
     assert host["Memory"] == profile.mem_mb * MIB
     assert not host["CapAdd"] and host["CapDrop"] == ["ALL"]
     assert host["Privileged"] is False and host["ReadonlyRootfs"] is True
