@@ -1,8 +1,9 @@
 """The conductor: advances simulated time for one run in windows, with a count-based barrier.
 
-Each window it publishes ``advance(t_end, expected_in)``, waits until every federate replied
-``done``, adds up what each federate sent to each other one (the next window's ``expected_in``)
-and picks the next window: the one after, or -- when every federate's next event and every
+Each window it publishes ``advance(t_end, expected_in)`` to the federates that have something
+to do in it (an event before its end, or messages sent to them since they last took part), waits
+until each of them replied ``done``, adds up what each federate sent to each other one (the next
+window's ``expected_in``) and picks the next window: the one after, or -- when every federate's next event and every
 message in flight lies later -- straight the window holding the earliest of them (idle jump).
 While waiting it polls a health check so that a dead or silent federate fails the run at once.
 
@@ -103,23 +104,34 @@ class Conductor:
     def run(self) -> ConductorResult:
         """Conduct windows until the end time; raises RunFailed."""
         sent: dict[str, dict[str, int]] = {f: {} for f in self.federates}
+        # What each federate reported of itself when it last took part in a window, and how many
+        # messages had been sent to it by then: a federate whose next event lies beyond a window
+        # and to which nothing was sent since sits that window out (no advance, no reply).
+        next_event: dict[str, int | None] = {}
+        seen_in: dict[str, int] = {}
         t_start = 0
         wall0 = time.monotonic()
         last_progress = 0.0
         while t_start < self.end_us:
             t_end = t_start + self.window_us
             expected = {f: sum(s.get(f, 0) for s in sent.values()) for f in self.federates}
-            adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected)
+            active = [f for f in self.federates
+                      if f not in seen_in or expected[f] > seen_in[f]
+                      or (next_event[f] is not None and next_event[f] < t_end)]  # type: ignore[operator]
+            adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected,
+                          federates=None if len(active) == len(self.federates) else active)
             self._trace.update(f"{self.windows}:{t_start}:{t_end};".encode())
             self.bus.publish(keys.advance(self.run_id), adv.encode())
-            dones = self._collect_done(self.windows)
-            nexts: list[int] = []
+            dones = self._collect_done(self.windows, active)
+            for f in active:
+                seen_in[f] = expected[f]
             for d in dones.values():
                 sent[d.federate] = d.sent_to
-                if d.next_event_us is not None:
-                    nexts.append(d.next_event_us)
-                if d.earliest_sent_us is not None:
-                    nexts.append(d.earliest_sent_us)
+                next_event[d.federate] = d.next_event_us
+            # The next window: the earliest of every federate's next event (sitting-out ones
+            # included) and of the messages sent in this one.
+            nexts = [t for t in next_event.values() if t is not None]
+            nexts += [d.earliest_sent_us for d in dones.values() if d.earliest_sent_us is not None]
             self.windows += 1
             self.t_us = t_end
             if nexts:
@@ -137,13 +149,13 @@ class Conductor:
             self.on_progress(Progress(self.end_us, self.end_us, self.windows, time.monotonic() - wall0))
         return ConductorResult(self.windows, self.t_us, self._trace.hexdigest())
 
-    def _collect_done(self, window: int) -> dict[str, Done]:
+    def _collect_done(self, window: int, active: list[str]) -> dict[str, Done]:
         dones: dict[str, Done] = {}
         deadline = time.monotonic() + self.window_timeout_s
-        while len(dones) < len(self.federates):
+        while len(dones) < len(active):
             item = self._next(deadline)
             if item is None:
-                silent = sorted(set(self.federates) - set(dones))
+                silent = sorted(set(active) - set(dones))
                 raise RunFailed(f"no answer to window {window} within {self.window_timeout_s:.0f} s from "
                                 f"{', '.join(silent)} (hung)", federate=silent[0])
             kind, key, payload = item

@@ -315,6 +315,7 @@ class ComputeNode:
         self.cores = max(1, math.ceil(profile.cpus))
         self.core_speed = profile.cpus / self.cores  # reference cores per emulated core
         self._free_at = [0] * self.cores
+        self._series: dict[str, tuple[Any, ...]] = {}
         self._rng = rng
         self._cgroup_visible = read_throttled_ns() is not None
         self.records: list[JobRecord] = []
@@ -345,7 +346,8 @@ class ComputeNode:
             self.quota = self._wall_quota()
         core = min(range(self.cores), key=lambda c: self._free_at[c])
         start = max(arrival_us, self._free_at[core])
-        throttled0 = read_throttled_ns() if self._cgroup_visible else None
+        # Throttling only matters to a job whose duration is measured; a drawn one skips the read.
+        throttled0 = read_throttled_ns() if self._cgroup_visible and self.measured else None
         if self.measured:
             token = self._clock.start()
             wall0 = time.perf_counter_ns()
@@ -364,12 +366,18 @@ class ComputeNode:
         duration = self._duration_us(kind, cpu, wall_ns)
         end = start + duration
         self._free_at[core] = end
-        labels = (self.node, kind)
-        metrics.JOB_DURATION.labels(*labels).observe(duration / 1e6)
-        metrics.JOB_QUEUE.labels(*labels).observe((start - arrival_us) / 1e6)
-        metrics.JOB_CPU.labels(*labels).inc(cpu.total_ns / 1e9)
+        series = self._series.get(kind)
+        if series is None:  # a label lookup per job costs more than the observation itself
+            labels = (self.node, kind)
+            series = self._series[kind] = (metrics.JOB_DURATION.labels(*labels),
+                                           metrics.JOB_QUEUE.labels(*labels),
+                                           metrics.JOB_CPU.labels(*labels),
+                                           metrics.JOB_THROTTLED.labels(*labels))
+        series[0].observe(duration / 1e6)
+        series[1].observe((start - arrival_us) / 1e6)
+        series[2].inc(cpu.total_ns / 1e9)
         if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
-            metrics.JOB_THROTTLED.labels(*labels).inc(max(0, throttled) / 1e6)
+            series[3].inc(max(0, throttled) / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
             queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu.total_ns // 1000,

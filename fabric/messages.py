@@ -58,6 +58,31 @@ class Message:
         return cls(t_us, src, dst, seq, plane, kind, body or {}, blob, window)
 
 
+# A batch: every data message one federate sent to one destination's inbox key in one window,
+# in sending order, as one bus message (the per-message cost of the bus is paid once a window).
+_BATCH = "batch"
+
+
+def encode_batch(raws: list[bytes]) -> bytes:
+    """One bus payload for several encoded data messages (a single message goes as it is)."""
+    if len(raws) == 1:
+        return raws[0]
+    return msgpack.packb([_BATCH, raws], use_bin_type=True)
+
+
+def decode_data(payload: bytes) -> list[Message]:
+    """The data messages of one bus payload: a single message or a batch."""
+    try:
+        head = msgpack.unpackb(payload, raw=False)
+    except Exception as exc:
+        raise MessageError(f"undecodable data message: {exc}") from exc
+    if isinstance(head, list) and len(head) == 2 and head[0] == _BATCH:
+        if not isinstance(head[1], list) or not all(isinstance(r, bytes) for r in head[1]):
+            raise MessageError("data batch must hold encoded messages")
+        return [Message.decode(raw) for raw in head[1]]
+    return [Message.decode(payload)]
+
+
 class ControlRecord(BaseModel):
     """Base of control-plane records: versioned, strict, msgpack on the wire."""
 
@@ -93,6 +118,10 @@ class Advance(ControlRecord):
     expected_in: dict[str, int] = Field(
         description="per federate: number of data messages sent to it in all earlier windows; it "
         "waits until it has received that many (counted by sending window) before processing"
+    )
+    federates: list[str] | None = Field(
+        default=None, description="the federates that take part in this window (None: all); the "
+        "others have no event in it and nothing new sent to them, and neither process nor reply"
     )
 
 

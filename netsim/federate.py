@@ -64,9 +64,12 @@ class NetsimFederate(Federate):
         # Simulated-time rates for the dashboards, refreshed every simulated second.
         self.delivered_bits = {"ul": 0, "dl": 0}
         self.rates_at: tuple[int, dict[str, int], dict[str, float]] = (0, dict(self.delivered_bits), self._prb_slots())
-        for direction in ("ul", "dl"):  # every loss cause has its series from the start, at zero
-            for cause in (LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET):
-                metrics.PACKETS.labels(direction, cause)
+        # The metric series of each direction and fate, looked up once: a label lookup per packet
+        # costs more than the update. Every loss cause has its series from the start, at zero.
+        self.packet_series = {(d, fate): metrics.PACKETS.labels(d, fate) for d in ("ul", "dl")
+                              for fate in ("delivered", "lost", LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET)}
+        self.byte_series = {d: metrics.PACKET_BYTES.labels(d) for d in ("ul", "dl")}
+        self.latency_series = {d: metrics.PACKET_LATENCY.labels(d) for d in ("ul", "dl")}
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "packet":
@@ -126,12 +129,12 @@ class NetsimFederate(Federate):
     def _record(self, o: PacketOutcome) -> None:
         p = o.packet
         if o.deliver_us is None:
-            metrics.PACKETS.labels(p.direction, o.cause or "lost").inc()
+            self.packet_series[p.direction, o.cause or "lost"].inc()
         else:
-            metrics.PACKETS.labels(p.direction, "delivered").inc()
-            metrics.PACKET_BYTES.labels(p.direction).inc(p.size_bytes)
+            self.packet_series[p.direction, "delivered"].inc()
+            self.byte_series[p.direction].inc(p.size_bytes)
             self.delivered_bits[p.direction] += 8 * p.size_bytes
-            metrics.PACKET_LATENCY.labels(p.direction).observe((o.deliver_us - p.enqueue_us) / 1e6)
+            self.latency_series[p.direction].observe((o.deliver_us - p.enqueue_us) / 1e6)
         self.packets.append({
             "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": p.direction,
             "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": o.deliver_us,

@@ -86,6 +86,46 @@ def test_idle_stretches_are_jumped(tmp_path: Path) -> None:
     assert [e[0] for e in feds["b"].log if e[3] == "ping"] == [1000] * 3 + [41_000] * 3
 
 
+class Counting(Pinger):
+    """A Pinger that counts the windows it took part in."""
+
+    windows_processed = 0
+
+    def process_window(self, adv):  # type: ignore[no-untyped-def]
+        self.windows_processed += 1
+        return super().process_window(adv)
+
+
+def test_federates_with_nothing_to_do_sit_windows_out(tmp_path: Path) -> None:
+    """``clock`` has an event in every window; ``p`` pings ``b`` every 5 ms (5 ms latency);
+    ``quiet`` has no event and nothing is sent to it. ``quiet`` takes part in the first window
+    only, ``b`` in the first, in each one after ``p`` sent it something, and in those its pings
+    land in."""
+    sc = parse_scenario({"duration_s": 0.02})
+    hub = InMemoryHub()
+
+    def fed(name: str, peers: list[str], ticks: list[int]) -> Counting:
+        return Counting(FederateContext(name, "t1", sc, tmp_path), InMemoryBus(hub), peers, ticks, 5 * W)
+
+    feds = {"clock": fed("clock", [], list(range(0, 20_000, 1000))),
+            "p": fed("p", ["b"], list(range(0, 20_000, 5000))),
+            "b": fed("b", [], []), "quiet": fed("quiet", [], [])}
+    conductor = Conductor(InMemoryBus(hub), "t1", sorted(feds), W, 20_000, window_timeout_s=5)
+    threads = [threading.Thread(target=f.serve, daemon=True) for f in feds.values()]
+    for t in threads:
+        t.start()
+    conductor.wait_ready(5)
+    result = conductor.run()
+    finish(conductor, threads)
+    assert result.windows == 20
+    assert feds["clock"].windows_processed == 20
+    assert feds["p"].windows_processed == 4  # its ticks: 0, 5, 10, 15 ms
+    assert feds["quiet"].windows_processed == 1
+    # b: window 0; 1, 6, 11, 16 (pings sent in the window before); 5, 10, 15 (pings land).
+    assert feds["b"].windows_processed == 8
+    assert [e[0] for e in feds["b"].log] == [5000] * 3 + [10_000] * 3 + [15_000] * 3
+
+
 def test_barrier_holds_against_reordered_and_late_delivery(tmp_path: Path) -> None:
     ticks = {"a": list(range(0, 30_000, 1000)), "b": list(range(500, 30_000, 1500)), "c": [7000, 9000]}
     hub = InMemoryHub()

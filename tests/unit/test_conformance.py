@@ -34,7 +34,7 @@ from fabric import federate as federate_mod
 from fabric import keys
 from fabric.bus import InMemoryBus, InMemoryHub
 from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
-from fabric.messages import Advance, Done, Message, Stop, Stopped
+from fabric.messages import Advance, Done, Message, Stop, Stopped, decode_data
 from fabric.tables import PartInfo, read_part
 from netsim.federate import NetsimFederate
 from scenario.schema import Scenario, parse_scenario
@@ -235,7 +235,7 @@ class ScriptedConductor:
             self.bus.subscribe(pattern, self._to_control(what))
         for plane in keys.DATA_PLANES:
             self.bus.subscribe(f"{keys.ROOT}/{RUN}/{plane}/*/{case.name}",
-                               lambda k, p: self.sent.append(Message.decode(p)))
+                               lambda k, p: self.sent.extend(decode_data(p)))
         self.fed = case.cls(FederateContext(case.name, RUN, self.sc, results_dir), InMemoryBus(self.hub))
         self.result = Result()
         self.thread = threading.Thread(target=self._serve, daemon=True)
