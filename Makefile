@@ -21,7 +21,7 @@ COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLAT
 
 .PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
 	reproduce reproduce-quick soak chaos \
-	calibrate measure-frames train-perception install-train clean
+	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
@@ -65,11 +65,11 @@ test-integration: $(BIN)/cosim5g ## runs over real zenoh and real processes
 bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
 
-soak: $(BIN)/cosim5g ## 100 smoke runs in one coordinator (+ DOCKER_RUNS in containers): leftovers, RSS, fds (results/bench/)
-	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),0)
+soak: $(BIN)/cosim5g ## 100 smoke runs in one coordinator + 20 in containers (RUNS, DOCKER_RUNS): leftovers, RSS, fds (results/bench/)
+	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),20)
 
-chaos: $(BIN)/cosim5g ## 30 runs with a random fault (kill/stop a federate, kill the coordinator, OOM): end states, leftovers
-	$(BIN)/python -m benchmarks.reliability chaos --runs $(or $(RUNS),30) --runtime $(or $(RUNTIME),process)
+chaos: $(BIN)/cosim5g ## 30 runs, both runtimes, each with a random fault (kill/stop a federate, kill the coordinator, OOM in docker): end states, leftovers
+	$(BIN)/python -m benchmarks.reliability chaos --runs $(or $(RUNS),30) --runtime $(or $(RUNTIME),both)
 
 JOBS ?= 1
 reproduce: $(BIN)/cosim5g ## the study's sweep (loops 2..36 x none/heuristic x 3 seeds, 60 s points): capacity, Fig. 4-6, report
@@ -101,7 +101,7 @@ calibrate: images ## real workloads at cpus 1/0.5/0.25, process + docker: cpu-mo
 bench-docker: images ## make bench plus the smoke run in containers: docker/process real-time factor
 	$(BIN)/python -m benchmarks.platform_bench --docker
 
-install-train: $(BIN)/cosim5g ## add torch + onnx to .venv (several GB: PyPI's torch brings CUDA libraries)
+install-train: $(BIN)/cosim5g ## add torch, onnx, gymnasium, stable-baselines3 to .venv (several GB: PyPI's torch brings CUDA libraries)
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray,train]'
 
 train-perception: install-train ## render the pose data set, train the Edge pose network (CPU), export pose.onnx, re-measure
@@ -109,6 +109,15 @@ train-perception: install-train ## render the pose data set, train the Edge pose
 	$(BIN)/python -m training.perception.dataset --split test --episodes 10
 	$(BIN)/python -m benchmarks.perception_accuracy --record
 	$(BIN)/python -m training.frame_model
+
+# The full path trains one PPO policy per lambda (two at a time, one core each, about 15 min on
+# two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 runs every step
+# on a tiny budget into a temporary directory (CI, about a minute).
+train-policy: install-train ## co-design policy: PPO per lambda, Pareto table, ship domain/models/policy.onnx (QUICK=1: 1-min check)
+	$(if $(QUICK),$(BIN)/python -m training.policy.train --quick,nice -n 19 $(BIN)/python -m training.policy.sweep --ship)
+
+policy-network: $(BIN)/cosim5g ## re-measure the policy environment's network table on the NR cell (training/policy/data/)
+	$(BIN)/python benchmarks/policy_network_table.py
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
 	$(BIN)/python -m training.frame_model

@@ -56,33 +56,38 @@ def recorded_summary(merged: dict[str, dict[str, Any]]) -> dict[str, Any]:
     return {"rows": {table: m["rows"] for table, m in merged.items()}, "parts": parts}
 
 
-def _pct(values: list[float], q: float) -> float | None:
-    return float(np.percentile(values, q)) if values else None
+def _pct(values: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
 
 
 def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]:
-    """KPIs from the tables of a finished run."""
+    """KPIs from the tables of a finished run. The packet and job tables are read as columns:
+    a long run has millions of packets, and a dict per row would cost the coordinator GBs."""
     merge_tables(run_dir)  # keeps the merged tables when the run merged them already
     tasks = [t for t in read_rows(run_dir / "tasks.parquet") if t["outcome"] != "unfinished"]
-    packets = read_rows(run_dir / "packets.parquet")
-    jobs = read_rows(run_dir / "jobs.parquet")
     sim = max(sim_time_s, 1e-9)
-    ul = [p for p in packets if p["dir"] == "ul"]
-    dl = [p for p in packets if p["dir"] == "dl"]
-    delivered = [p for p in packets if p["deliver_us"] is not None]
-    lat_ms = [p["latency_us"] / 1000 for p in delivered]
-    per_loop_bytes: Counter[str] = Counter()
-    for p in ul:
-        per_loop_bytes[p["ue"]] += p["size_bytes"]
-    camera_mbps = {ue: b * 8 / sim / 1e6 for ue, b in sorted(per_loop_bytes.items())}
+    pk = _table_columns(run_dir / "packets.parquet",
+                        ["dir", "ue", "size_bytes", "deliver_us", "latency_us", "lost_cause"])
+    size = pk["size_bytes"].astype(np.int64)
+    is_ul, is_dl = pk["dir"] == "ul", pk["dir"] == "dl"
+    delivered = ~_missing(pk["deliver_us"])
+    latency_ms = pk["latency_us"][delivered].astype(np.float64) / 1000
+    ul_latency_ms = pk["latency_us"][delivered & is_ul].astype(np.float64) / 1000
+    ues, ue_index = np.unique(pk["ue"][is_ul].astype(str), return_inverse=True)
+    ue_bytes = np.bincount(ue_index, weights=size[is_ul], minlength=len(ues))
+    camera_mbps = {str(ue): float(b) * 8 / sim / 1e6 for ue, b in zip(ues, ue_bytes, strict=True)}
+    lost: Counter[Any] = Counter(pk["lost_cause"][~delivered].tolist())
     placed = sum(1 for t in tasks if t["success"])
     by_cell: Counter[int] = Counter(t["cell"] for t in tasks)
+    jb = _table_columns(run_dir / "jobs.parquet", ["node", "kind", "duration_us", "queue_us"])
+    role = np.array([str(n).split("-")[0] for n in jb["node"]], dtype=object)
     node_latency: dict[str, dict[str, float | None]] = {}
-    for kind in sorted({(j["node"].split("-")[0], j["kind"]) for j in jobs}):
-        d = [j["duration_us"] / 1000 for j in jobs if (j["node"].split("-")[0], j["kind"]) == kind]
-        qd = [j["queue_us"] / 1000 for j in jobs if (j["node"].split("-")[0], j["kind"]) == kind]
+    for kind in sorted({(r, str(k)) for r, k in zip(role, jb["kind"], strict=True)}):
+        mine = (role == kind[0]) & (jb["kind"] == kind[1])
+        d = jb["duration_us"][mine].astype(np.float64) / 1000
+        qd = jb["queue_us"][mine].astype(np.float64) / 1000
         node_latency[f"{kind[0]}/{kind[1]}"] = {"p50_ms": _pct(d, 50), "p99_ms": _pct(d, 99),
-                                                "queue_p99_ms": _pct(qd, 99), "jobs": len(d)}
+                                                "queue_p99_ms": _pct(qd, 99), "jobs": int(d.size)}
     return {
         "loops": loops,
         "tasks": len(tasks),
@@ -90,19 +95,36 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
         "task_success_rate": placed / len(tasks) if tasks else None,
         "loops_with_tasks": len(by_cell),
         "task_outcomes": dict(Counter(t["outcome"] for t in tasks)),
-        "ul_packets": len(ul),
-        "dl_packets": len(dl),
-        "ul_injected_mbps": sum(p["size_bytes"] for p in ul) * 8 / sim / 1e6,
-        "ul_throughput_mbps": sum(p["size_bytes"] for p in ul if p["deliver_us"] is not None) * 8 / sim / 1e6,
-        "dl_throughput_mbps": sum(p["size_bytes"] for p in dl if p["deliver_us"] is not None) * 8 / sim / 1e6,
-        "ip_latency_ms": {"p50": _pct(lat_ms, 50), "p99": _pct(lat_ms, 99), "max": max(lat_ms, default=None)},
-        "ul_ip_latency_ms": {"p50": _pct([p["latency_us"] / 1000 for p in ul if p["deliver_us"] is not None], 50),
-                             "p99": _pct([p["latency_us"] / 1000 for p in ul if p["deliver_us"] is not None], 99)},
-        "lost_packets": dict(Counter(p["lost_cause"] for p in packets if p["deliver_us"] is None)),
+        "ul_packets": int(is_ul.sum()),
+        "dl_packets": int(is_dl.sum()),
+        "ul_injected_mbps": int(size[is_ul].sum()) * 8 / sim / 1e6,
+        "ul_throughput_mbps": int(size[is_ul & delivered].sum()) * 8 / sim / 1e6,
+        "dl_throughput_mbps": int(size[is_dl & delivered].sum()) * 8 / sim / 1e6,
+        "ip_latency_ms": {"p50": _pct(latency_ms, 50), "p99": _pct(latency_ms, 99),
+                          "max": float(latency_ms.max()) if latency_ms.size else None},
+        "ul_ip_latency_ms": {"p50": _pct(ul_latency_ms, 50), "p99": _pct(ul_latency_ms, 99)},
+        "lost_packets": dict(lost),
         "camera_bitrate_mbps": camera_mbps,
         "camera_bitrate_mbps_mean": float(np.mean(list(camera_mbps.values()))) if camera_mbps else 0.0,
         "compute_latency": node_latency,
     }
+
+
+def _missing(values: np.ndarray) -> np.ndarray:
+    """Where a column read from Parquet holds no value (None in an object array, NaN in floats)."""
+    if values.dtype == object:
+        return np.array([v is None for v in values], dtype=bool)
+    if values.dtype.kind == "f":
+        return np.isnan(values)
+    return np.zeros(values.shape, dtype=bool)
+
+
+def _table_columns(path: Path, names: list[str]) -> dict[str, np.ndarray]:
+    """Columns of a merged run table as numpy arrays (empty arrays for a table without rows)."""
+    cols = _column(path, names)
+    if cols is None:
+        return {n: np.array([], dtype=object) for n in names}
+    return cols
 
 
 def _column(path: Path, names: list[str]) -> dict[str, np.ndarray] | None:
