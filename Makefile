@@ -62,8 +62,9 @@ test-unit: $(BIN)/cosim5g ## fast unit tests only (in-memory bus)
 test-integration: $(BIN)/cosim5g ## runs over real zenoh and real processes
 	$(BIN)/pytest -q -m integration
 
-bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor (results/bench/)
+bench: $(BIN)/cosim5g ## benchmarks: conductor windows/s, smoke real-time factor, speed of 32-loop runs and netsim (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
+	$(BIN)/python -m benchmarks.speed
 
 soak: $(BIN)/cosim5g ## 100 smoke runs in one coordinator + 20 in containers (RUNS, DOCKER_RUNS): leftovers, RSS, fds (results/bench/)
 	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),20)
@@ -98,8 +99,9 @@ down: ## stop the platform and remove its containers, networks and volumes (and 
 calibrate: images ## real workloads at cpus 1/0.5/0.25, process + docker: cpu-mode and wall vs ideal, 95% CIs (results/bench/)
 	$(BIN)/python -m coordinator.calibrate --runtime both --rounds $(or $(ROUNDS),6) --jobs $(or $(CAL_JOBS),6)
 
-bench-docker: images ## make bench plus the smoke run in containers: docker/process real-time factor
+bench-docker: images ## make bench plus runs in containers: docker/process speed ratios
 	$(BIN)/python -m benchmarks.platform_bench --docker
+	$(BIN)/python -m benchmarks.speed --docker
 
 install-train: $(BIN)/cosim5g ## add torch, onnx, gymnasium, stable-baselines3 to .venv (several GB: PyPI's torch brings CUDA libraries)
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray,train]'

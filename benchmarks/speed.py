@@ -1,0 +1,144 @@
+"""Speed of whole runs (``make bench``): the cases the platform is held to, in one table.
+
+Speed = simulated seconds per wall second (> 1 is faster than real time), for:
+
+- 32 loops, ``detailed_loops=0``, policy none, process runtime;
+- 32 loops, ``detailed_loops=1`` (the default camera), process runtime;
+- the same in the docker runtime (``--docker``), as a ratio to the process runtime;
+- netsim standalone, 36 UEs at 8.5 Mbit/s (saturated), slots per wall second.
+
+Speed counts the whole run (starting the federates included). Where the windows' wall time went
+(``windows_wall_s``: from the first window to the last): per federate, the share it spent
+processing windows (``busy``), and an upper bound of the share spent in the window protocol
+(barrier and messaging): 1 - (busiest federate's processing time) / windows' wall time, since
+the windows cannot take less than the busiest federate's processing.
+
+Writes results/bench/speed.{md,json}. Figures from a shared machine: compare ratios within one
+run of this script.
+
+    python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1,netsim]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from coordinator.run import execute_run
+from netsim.standalone import run_uplink_cameras
+from scenario.schema import load_scenario
+
+ROOT = Path(__file__).parents[1]
+CASES = ("k0", "k1", "netsim")
+
+
+def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path) -> dict[str, Any]:
+    """One run of the baseline scenario (policy none) at ``loops`` / ``detailed``; its speed and
+    where the wall time went."""
+    sc = load_scenario(ROOT / "configs" / "scenarios" / "baseline.yaml",
+                       [f"loops={loops}", f"detailed_loops={detailed}", f"duration_s={duration_s}",
+                        f"runtime={runtime}"])
+    t0 = time.perf_counter()
+    r = execute_run(sc, results)
+    wall = time.perf_counter() - t0
+    k = r.kpis
+    feds = k.get("federates") or {}
+    busy = {name: float(s.get("busy_wall_s", 0.0)) for name, s in feds.items()}
+    cpu = {name: float(s.get("cpu_s", 0.0)) for name, s in feds.items()}
+    run_wall = float(k.get("wall_time_s") or wall)
+    # Shares of the windows' wall time: starting and stopping federates is not the protocol.
+    windows_wall = float(k.get("windows_wall_s") or run_wall)
+    busiest = max(busy.values(), default=0.0)
+    return {
+        "status": r.status, "reason": r.reason, "loops": loops, "detailed_loops": detailed,
+        "runtime": runtime, "sim_s": k.get("sim_time_s"), "wall_s": run_wall, "windows_wall_s": windows_wall,
+        "speed": k.get("real_time_factor"), "windows": k.get("windows"),
+        "windows_per_s": (k.get("windows") or 0) / windows_wall if windows_wall else None,
+        "busy_share": {n: b / windows_wall for n, b in sorted(busy.items())},
+        "cpu_s": cpu,
+        "protocol_share_max": max(0.0, 1.0 - busiest / windows_wall) if windows_wall else None,
+        "tasks": k.get("tasks"), "task_success_rate": k.get("task_success_rate"),
+        "ul_packets": k.get("ul_packets"),
+    }
+
+
+def netsim_case(duration_s: float) -> dict[str, Any]:
+    best: dict[str, Any] | None = None
+    for _ in range(2):
+        r = run_uplink_cameras(36, 8.5, duration_s, seed=0)
+        if best is None or r["slots_per_second"] > best["slots_per_second"]:
+            best = r
+    assert best is not None
+    return {"slots_per_second": best["slots_per_second"], "ues": 36, "offered_mbps": best["offered_mbps"]}
+
+
+def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[str, Any] | None) -> str:
+    lines = ["# Speed", "",
+             f"{meta['date']}, {meta['cores']} cores, load average {meta['load_start']:.1f} at the start "
+             f"and {meta['load_end']:.1f} at the end. Speed = simulated s / wall s.", "",
+             "| case | speed | windows/s | window protocol share (upper bound) | busiest federate | tasks, success |",
+             "|---|---:|---:|---:|---|---|"]
+    for name, r in runs.items():
+        if r["status"] != "completed":
+            lines.append(f"| {name} | {r['status']}: {r['reason']} | | | | |")
+            continue
+        busiest = max(r["busy_share"].items(), key=lambda kv: kv[1], default=("-", 0.0))
+        success = "-" if r["task_success_rate"] is None else f"{r['task_success_rate']:.0%}"
+        lines.append(f"| {name} | {r['speed']:.3f} | {r['windows_per_s']:.0f} | {r['protocol_share_max']:.0%} | "
+                     f"{busiest[0]} {busiest[1]:.0%} | {r['tasks']}, {success} |")
+    if "k1 docker" in runs and "k1 process" in runs:
+        d, p = runs["k1 docker"], runs["k1 process"]
+        if d.get("speed") and p.get("speed"):
+            lines.append(f"| docker / process, K=1 | {d['speed'] / p['speed']:.3f} (ratio) | | | | |")
+    if netsim is not None:
+        lines.append(f"| netsim standalone, 36 UEs x 8.5 Mbit/s | {netsim['slots_per_second']:.0f} slots/s | "
+                     "| | | |")
+    lines += ["", "Busy share per federate (processing windows / wall):", ""]
+    for name, r in runs.items():
+        shares = ", ".join(f"{n} {s:.0%}" for n, s in r["busy_share"].items())
+        lines.append(f"- {name}: {shares}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration-s", type=float, default=30.0, help="simulated seconds per run")
+    ap.add_argument("--loops", type=int, default=32)
+    ap.add_argument("--docker", action="store_true", help="also the K=1 case in the docker runtime")
+    ap.add_argument("--only", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
+    ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
+    args = ap.parse_args(argv)
+    only = [c.strip() for c in args.only.split(",") if c.strip()]
+    bad = [c for c in only if c not in CASES]
+    if bad:
+        ap.error(f"--only: {bad} not among {', '.join(CASES)}")
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cores": os.cpu_count(),
+            "load_start": os.getloadavg()[0], "duration_s": args.duration_s, "loops": args.loops}
+    runs: dict[str, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory(prefix="cosim5g-speed-") as tmp:
+        results = Path(tmp)
+        if "k0" in only:
+            runs["k0 process"] = run_case(args.loops, 0, args.duration_s, "process", results)
+        if "k1" in only:
+            runs["k1 process"] = run_case(args.loops, 1, args.duration_s, "process", results)
+            if args.docker:
+                runs["k1 docker"] = run_case(args.loops, 1, args.duration_s, "docker", results)
+    netsim = netsim_case(2.0) if "netsim" in only else None
+    meta["load_end"] = os.getloadavg()[0]
+    text = render(meta, runs, netsim)
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "speed.md").write_text(text)
+    (args.out / "speed.json").write_text(json.dumps({"meta": meta, "runs": runs, "netsim": netsim}, indent=1) + "\n")
+    print(f"written to {args.out / 'speed.md'}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
