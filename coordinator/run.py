@@ -2,11 +2,13 @@
 simulated time, stop everything on every exit path, write results and KPIs.
 
 A run ends in exactly one state: ``completed``, ``failed`` (with the federate and reason),
-``cancelled`` or ``timed_out``.
+``cancelled`` or ``timed_out``. A run whose coordinator died is closed afterwards by
+``salvage_run``: its streamed records merged, ``kpis.json`` saying how far it got.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import secrets
 import socket
@@ -217,3 +219,34 @@ def execute_run(
     write_json(run_dir / "status.json", {"run_id": run_id, "status": status, "reason": reason,
                                          "seed": scenario.seed})
     return RunResult(run_id, status, run_dir, kpis, reason)
+
+
+def salvage_run(run_dir: Path, reason: str) -> dict[str, Any] | None:
+    """Close the records of a run whose coordinator died before it ended: merge what every
+    federate streamed (``tables/`` parts) into the run tables and write ``kpis.json`` with status
+    ``failed``, ``reason`` and how far the records go (``recorded``), so that nothing written is
+    lost and the run says where it stopped. A run that has its ``kpis.json`` is left as it is
+    (None); otherwise the KPIs written."""
+    if (run_dir / "kpis.json").exists() or not run_dir.is_dir():
+        return None
+    status = {}
+    try:
+        status = json.loads((run_dir / "status.json").read_text())
+    except (OSError, ValueError):
+        pass
+    recorded: dict[str, Any] = {}
+    try:
+        merged = merge_tables(run_dir)
+        recorded = recorded_summary(merged)
+        # Every federate's records reach at least this far: the run's simulated time, safely.
+        reached = [info["upto_s"] for m in merged.values() for info in m["parts"].values()
+                   if info.get("upto_s") is not None]
+        recorded["sim_time_reached_s"] = min(reached) if reached else 0.0
+    except Exception as exc:  # partial or unreadable parts: say so, keep the rest
+        recorded["error"] = f"{type(exc).__name__}: {exc}"
+    kpis = {"run_id": status.get("run_id", run_dir.name), "status": "failed", "reason": reason,
+            "seed": status.get("seed"), "recorded": recorded, "results_dir": str(run_dir)}
+    write_json(run_dir / "kpis.json", kpis)
+    write_json(run_dir / "status.json", {**status, "run_id": kpis["run_id"], "status": "failed", "reason": reason})
+    return kpis
+

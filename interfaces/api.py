@@ -14,6 +14,7 @@ naming the limit) and how much work may wait (429).
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import threading
@@ -30,14 +31,16 @@ from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_late
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from coordinator.conductor import Progress
-from coordinator.run import RunResult, execute_run, new_run_id
+from coordinator.run import RunResult, execute_run, new_run_id, salvage_run
 from experiments.executors import Executor
 from experiments.service import SweepService
 from experiments.spec import SweepError, SweepSpec, base_path, overrides
 from interfaces.api_sweeps import add_sweep_routes
 from interfaces.auth import token_matches
-from interfaces.store import RunStore
+from interfaces.store import ORPHAN_REASON, RunStore
 from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario
+
+log = logging.getLogger(__name__)
 
 RUNS = Counter("cosim_coordinator_runs_total", "Runs finished, by final state", ["status"])
 ACTIVE = Gauge("cosim_coordinator_runs_active", "Runs pending or running")
@@ -114,7 +117,11 @@ class Coordinator:
         self.admit = threading.Lock()  # the queue check and the enqueue, as one step
         self.queued_elsewhere: Callable[[], int] = lambda: 0  # sweeps pending or running (set by create_app)
         self.store = RunStore(db_path)
-        self.store.reap_orphans()
+        for run_id, results_dir in self.store.reap_orphans():
+            try:  # what the run's federates streamed before the coordinator died is kept
+                salvage_run(Path(results_dir), ORPHAN_REASON)
+            except OSError as exc:
+                log.warning("run %s: could not close its records in %s: %s", run_id, results_dir, exc)
         self.queue: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
         self.busy = threading.Lock()  # held while a simulation runs (a run here, or a sweep point)
         self.cancels: dict[str, threading.Event] = {}

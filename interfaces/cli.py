@@ -218,6 +218,26 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_salvage(args: argparse.Namespace) -> int:
+    from coordinator.run import salvage_run
+
+    code = 0
+    for d in args.run_dirs:
+        run_dir = Path(d)
+        if not run_dir.is_dir():
+            print(f"{run_dir}: no such run directory", file=sys.stderr)
+            code = 2
+            continue
+        kpis = salvage_run(run_dir, args.reason)
+        if kpis is None:
+            print(f"{run_dir}: has its kpis.json already; left as it is")
+            continue
+        rec = kpis["recorded"]
+        print(f"{run_dir}: records merged up to {rec.get('sim_time_reached_s', 0.0):g} s simulated, rows "
+              f"{rec.get('rows', {})}{'; ' + rec['error'] if 'error' in rec else ''}")
+    return code
+
+
 def cmd_netsim(args: argparse.Namespace) -> int:
     try:
         from netsim.standalone import main as netsim_main
@@ -378,6 +398,11 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("report", help="rebuild a sweep's tables, capacity, figures and report.md")
     rp.add_argument("dir", help="a sweep directory (results/sweeps/<sweep_id>)")
     rp.set_defaults(fn=cmd_report)
+    sv = sub.add_parser("salvage", help="close the records of runs whose coordinator died: merge what the "
+                        "federates streamed, write kpis.json with how far each run got")
+    sv.add_argument("run_dirs", nargs="+", help="run directories (results/runs/<run_id>)")
+    sv.add_argument("--reason", default="coordinator stopped during the run", help="the runs' failure reason")
+    sv.set_defaults(fn=cmd_salvage)
     n = sub.add_parser("netsim", help="standalone 5G NR cell (calibration, benchmarks)", add_help=False)
     n.add_argument("rest", nargs=argparse.REMAINDER)
     n.set_defaults(fn=cmd_netsim)

@@ -34,6 +34,10 @@ CREATE TABLE IF NOT EXISTS runs (
 ACTIVE = ("pending", "running")
 
 
+# Why a run a previous coordinator left unfinished failed.
+ORPHAN_REASON = "coordinator stopped during the run"
+
+
 class RunStore:
     def __init__(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -45,13 +49,16 @@ class RunStore:
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.execute(_SCHEMA)
 
-    def reap_orphans(self) -> int:
-        """Mark runs a previous coordinator left unfinished as failed; how many."""
+    def reap_orphans(self) -> list[tuple[str, str]]:
+        """Mark runs a previous coordinator left unfinished as failed; their (run id, results
+        directory), for their records to be closed."""
         with self._lock:
-            cur = self._db.execute(
-                "UPDATE runs SET status='failed', reason='coordinator stopped during the run', finished_s=? "
-                "WHERE status IN ('pending','running')", (time.time(),))
-            return cur.rowcount
+            rows = self._db.execute(
+                "SELECT run_id, results_dir FROM runs WHERE status IN ('pending','running')").fetchall()
+            self._db.execute(
+                "UPDATE runs SET status='failed', reason=?, finished_s=? WHERE status IN ('pending','running')",
+                (ORPHAN_REASON, time.time()))
+            return [(str(r[0]), str(r[1])) for r in rows]
 
     def add(self, run_id: str, scenario: str, config: dict[str, Any], results_dir: str) -> None:
         with self._lock:

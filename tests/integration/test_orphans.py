@@ -91,6 +91,20 @@ def test_sigkilled_coordinator_leaves_no_federate_behind(tmp_path: Path) -> None
         rows = sum(b.num_rows for b in read_part(path, info))
         assert info.complete and info.error is None, (path.name, info)
         assert rows == info.rows
+    # `cosim5g salvage` closes the run: tables merged, kpis.json says how far it got.
+    run_dir = tmp_path / run_id
+    assert not (run_dir / "kpis.json").exists()
+    out = subprocess.run([sys.executable, "-m", "interfaces.cli", "salvage", str(run_dir)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    kpis = json.loads((run_dir / "kpis.json").read_text())
+    assert kpis["status"] == "failed" and kpis["reason"] == "coordinator stopped during the run"
+    assert kpis["recorded"]["sim_time_reached_s"] > 0
+    assert kpis["recorded"]["rows"]["packets"] > 0
+    assert pq.read_table(run_dir / "packets.parquet").num_rows == kpis["recorded"]["rows"]["packets"]
+    again = subprocess.run([sys.executable, "-m", "interfaces.cli", "salvage", str(run_dir)], cwd=ROOT,
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and "left as it is" in again.stdout
 
 
 def test_a_federate_killed_mid_run_leaves_its_records_up_to_the_kill(tmp_path: Path) -> None:

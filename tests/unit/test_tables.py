@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import threading
 from pathlib import Path
 from typing import Any
@@ -138,3 +139,29 @@ def test_a_federate_flushes_every_few_simulated_seconds(tmp_path: Path) -> None:
     assert len(rows) == end_us // 1000 and info.complete
     assert stopped["netsim"].summary["records"] == {"packets": end_us // 1000}
     assert stopped["netsim"].summary["peak_rss_mb"] > 0
+
+
+def test_a_run_whose_coordinator_died_is_closed_when_a_coordinator_starts(tmp_path: Path) -> None:
+    """The API's store still says "running" and the run has only its streamed parts: the next
+    coordinator marks it failed and merges the parts, kpis.json saying how far it got."""
+    from interfaces.api import Coordinator
+    from interfaces.store import ORPHAN_REASON, RunStore
+
+    run_dir = tmp_path / "runs" / "r1"
+    now = [0]
+    w = TableWriter(part_path(run_dir, "packets", "netsim"), PACKETS, "packets", lambda: now[0], max_rows=4)
+    for i in range(6):
+        now[0] = 1000 * i
+        w.append(packet(i))
+    w.flush()  # the federate streamed 6 rows, then everything died: the part was never closed
+    store = RunStore(tmp_path / "runs.sqlite")
+    store.add("r1", "smoke", {}, str(run_dir))
+    store.set_running("r1")
+    del store
+    coordinator = Coordinator(tmp_path / "runs", tmp_path / "runs.sqlite", tmp_path)
+    assert coordinator.store.get("r1")["status"] == "failed"
+    kpis = json.loads((run_dir / "kpis.json").read_text())
+    assert kpis["status"] == "failed" and kpis["reason"] == ORPHAN_REASON
+    assert kpis["recorded"]["rows"]["packets"] == 6
+    assert kpis["recorded"]["sim_time_reached_s"] == pytest.approx(0.005)
+    assert pq.read_table(run_dir / "packets.parquet").num_rows == 6
