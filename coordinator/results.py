@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from fabric.tables import TABLES, merge_parts, read_rows, write_table
@@ -61,33 +63,38 @@ def _pct(values: np.ndarray, q: float) -> float | None:
 
 
 def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]:
-    """KPIs from the tables of a finished run. The packet and job tables are read as columns:
-    a long run has millions of packets, and a dict per row would cost the coordinator GBs."""
+    """KPIs from the tables of a finished run. The packet and job tables are computed on as Arrow
+    columns: a long run has millions of packets, and a Python object per row or per string would
+    cost the coordinator GBs (a 32-loop, 300 s run has 7 million)."""
     merge_tables(run_dir)  # keeps the merged tables when the run merged them already
     tasks = [t for t in read_rows(run_dir / "tasks.parquet") if t["outcome"] != "unfinished"]
     sim = max(sim_time_s, 1e-9)
-    pk = _table_columns(run_dir / "packets.parquet",
-                        ["dir", "ue", "size_bytes", "deliver_us", "latency_us", "lost_cause"])
-    size = pk["size_bytes"].astype(np.int64)
-    is_ul, is_dl = pk["dir"] == "ul", pk["dir"] == "dl"
-    delivered = ~_missing(pk["deliver_us"])
-    latency_ms = pk["latency_us"][delivered].astype(np.float64) / 1000
-    ul_latency_ms = pk["latency_us"][delivered & is_ul].astype(np.float64) / 1000
-    ues, ue_index = np.unique(pk["ue"][is_ul].astype(str), return_inverse=True)
-    ue_bytes = np.bincount(ue_index, weights=size[is_ul], minlength=len(ues))
-    camera_mbps = {str(ue): float(b) * 8 / sim / 1e6 for ue, b in zip(ues, ue_bytes, strict=True)}
-    lost: Counter[Any] = Counter(pk["lost_cause"][~delivered].tolist())
+    pk = _read(run_dir / "packets.parquet", ["dir", "ue", "size_bytes", "deliver_us", "latency_us", "lost_cause"])
+    is_ul, is_dl = pc.equal(pk["dir"], "ul"), pc.equal(pk["dir"], "dl")
+    delivered = pc.is_valid(pk["deliver_us"])
+    size = pk["size_bytes"]
+
+    def total_bytes(mask: Any) -> int:
+        return int(pc.sum(pc.filter(size, mask)).as_py() or 0)
+
+    latency_ms = _as_ms(pc.filter(pk["latency_us"], delivered))
+    ul_latency_ms = _as_ms(pc.filter(pk["latency_us"], pc.and_(delivered, is_ul)))
+    per_ue = pk.filter(is_ul).group_by("ue").aggregate([("size_bytes", "sum")]).to_pydict()
+    camera_mbps = {ue: b * 8 / sim / 1e6
+                   for ue, b in sorted(zip(per_ue["ue"], per_ue["size_bytes_sum"], strict=True))}
+    lost_counts = pc.value_counts(pc.filter(pk["lost_cause"], pc.invert(delivered))).to_pylist()
     placed = sum(1 for t in tasks if t["success"])
     by_cell: Counter[int] = Counter(t["cell"] for t in tasks)
-    jb = _table_columns(run_dir / "jobs.parquet", ["node", "kind", "duration_us", "queue_us"])
-    role = np.array([str(n).split("-")[0] for n in jb["node"]], dtype=object)
+    jb = _read(run_dir / "jobs.parquet", ["node", "kind", "duration_us", "queue_us"])
+    role = pc.replace_substring_regex(jb["node"], pattern="-.*$", replacement="")
+    pairs = pa.table({"role": role, "kind": jb["kind"]}).group_by(["role", "kind"]).aggregate([]).to_pydict()
     node_latency: dict[str, dict[str, float | None]] = {}
-    for kind in sorted({(r, str(k)) for r, k in zip(role, jb["kind"], strict=True)}):
-        mine = (role == kind[0]) & (jb["kind"] == kind[1])
-        d = jb["duration_us"][mine].astype(np.float64) / 1000
-        qd = jb["queue_us"][mine].astype(np.float64) / 1000
-        node_latency[f"{kind[0]}/{kind[1]}"] = {"p50_ms": _pct(d, 50), "p99_ms": _pct(d, 99),
-                                                "queue_p99_ms": _pct(qd, 99), "jobs": int(d.size)}
+    for r, k in sorted(zip(pairs["role"], pairs["kind"], strict=True)):
+        mine = pc.and_(pc.equal(role, r), pc.equal(jb["kind"], k))
+        d = _as_ms(pc.filter(jb["duration_us"], mine))
+        qd = _as_ms(pc.filter(jb["queue_us"], mine))
+        node_latency[f"{r}/{k}"] = {"p50_ms": _pct(d, 50), "p99_ms": _pct(d, 99),
+                                    "queue_p99_ms": _pct(qd, 99), "jobs": int(d.size)}
     return {
         "loops": loops,
         "tasks": len(tasks),
@@ -95,36 +102,32 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
         "task_success_rate": placed / len(tasks) if tasks else None,
         "loops_with_tasks": len(by_cell),
         "task_outcomes": dict(Counter(t["outcome"] for t in tasks)),
-        "ul_packets": int(is_ul.sum()),
-        "dl_packets": int(is_dl.sum()),
-        "ul_injected_mbps": int(size[is_ul].sum()) * 8 / sim / 1e6,
-        "ul_throughput_mbps": int(size[is_ul & delivered].sum()) * 8 / sim / 1e6,
-        "dl_throughput_mbps": int(size[is_dl & delivered].sum()) * 8 / sim / 1e6,
+        "ul_packets": int(pc.sum(is_ul).as_py() or 0),
+        "dl_packets": int(pc.sum(is_dl).as_py() or 0),
+        "ul_injected_mbps": total_bytes(is_ul) * 8 / sim / 1e6,
+        "ul_throughput_mbps": total_bytes(pc.and_(is_ul, delivered)) * 8 / sim / 1e6,
+        "dl_throughput_mbps": total_bytes(pc.and_(is_dl, delivered)) * 8 / sim / 1e6,
         "ip_latency_ms": {"p50": _pct(latency_ms, 50), "p99": _pct(latency_ms, 99),
                           "max": float(latency_ms.max()) if latency_ms.size else None},
         "ul_ip_latency_ms": {"p50": _pct(ul_latency_ms, 50), "p99": _pct(ul_latency_ms, 99)},
-        "lost_packets": dict(lost),
+        "lost_packets": {c["values"]: c["counts"] for c in lost_counts},
         "camera_bitrate_mbps": camera_mbps,
         "camera_bitrate_mbps_mean": float(np.mean(list(camera_mbps.values()))) if camera_mbps else 0.0,
         "compute_latency": node_latency,
     }
 
 
-def _missing(values: np.ndarray) -> np.ndarray:
-    """Where a column read from Parquet holds no value (None in an object array, NaN in floats)."""
-    if values.dtype == object:
-        return np.array([v is None for v in values], dtype=bool)
-    if values.dtype.kind == "f":
-        return np.isnan(values)
-    return np.zeros(values.shape, dtype=bool)
+def _read(path: Path, names: list[str]) -> pa.Table:
+    """The ``names`` columns of a merged run table (an empty table with them when it has none)."""
+    schema = TABLES[path.stem]
+    if path.exists():
+        return pq.read_table(path, columns=names)
+    return pa.table({n: pa.array([], type=schema.field(n).type) for n in names})
 
 
-def _table_columns(path: Path, names: list[str]) -> dict[str, np.ndarray]:
-    """Columns of a merged run table as numpy arrays (empty arrays for a table without rows)."""
-    cols = _column(path, names)
-    if cols is None:
-        return {n: np.array([], dtype=object) for n in names}
-    return cols
+def _as_ms(values: Any) -> np.ndarray:
+    """Microseconds (an Arrow array without nulls) as a numpy array of milliseconds."""
+    return np.asarray(values.to_numpy(), dtype=np.float64) / 1000
 
 
 def _column(path: Path, names: list[str]) -> dict[str, np.ndarray] | None:
@@ -188,29 +191,39 @@ def loop_kpis(run_dir: Path, loops: int, detailed_loops: int, sim_time_s: float)
             if 0 <= loop < loops and n:
                 rows[int(loop)].update(frames=int(n), frames_kept=int(kept), mean_pdp=float(kept) / float(n))
 
-    packets = _column(run_dir / "packets.parquet", ["ue", "dir", "size_bytes", "latency_us", "lost_cause"])
+    # Packets as Arrow columns, the UE names dictionary-encoded: millions of rows, a few dozen UEs.
+    pk = _read(run_dir / "packets.parquet", ["ue", "dir", "size_bytes", "latency_us", "lost_cause"])
     for r in rows:
         r.update(ul_packets=0, ul_injected_mbps=0.0, ul_throughput_mbps=0.0, ul_latency_p50_ms=None,
                  ul_latency_p99_ms=None, dl_latency_p50_ms=None, dl_latency_p99_ms=None, lost_packets=0,
                  lost_causes="")
-    if packets is not None and packets["ue"].size:
+    if pk.num_rows:
         # Each loop has two radio endpoints: camera-i (uplink video, downlink QoS) and robot-i.
-        loop_of = np.array([int(u.rsplit("-", 1)[1]) for u in packets["ue"]])
-        lat = packets["latency_us"].astype(float)
+        ues = pc.dictionary_encode(pk["ue"]).combine_chunks()
+        loop_of_ue = np.array([int(u.rsplit("-", 1)[1]) for u in ues.dictionary.to_pylist()], dtype=np.int64)
+        loop_of = loop_of_ue[ues.indices.to_numpy()]
+        lat = np.asarray(pk["latency_us"].to_numpy(), dtype=np.float64)  # NaN: not delivered
         delivered = ~np.isnan(lat)
-        ul = packets["dir"] == "ul"
-        size = packets["size_bytes"].astype(np.int64)
+        ul = pc.equal(pk["dir"], "ul").to_numpy()
+        size = np.asarray(pk["size_bytes"].to_numpy(), dtype=np.int64)
+        lost_rows = ~delivered
+        causes_by_loop: dict[int, Counter[str]] = {}
+        if lost_rows.any():
+            lost = pa.table({"loop": loop_of[lost_rows],
+                             "cause": pc.filter(pk["lost_cause"], pa.array(lost_rows))})
+            counted = lost.group_by(["loop", "cause"]).aggregate([("loop", "count")]).to_pydict()
+            for loop, cause, n in zip(counted["loop"], counted["cause"], counted["loop_count"], strict=True):
+                causes_by_loop.setdefault(int(loop), Counter())[str(cause)] += int(n)
         for r in rows:
             mine = loop_of == r["loop"]
             mul, mdl = mine & ul, mine & ~ul
-            lost = mine & ~delivered
             ul_p50, ul_p99 = _percentiles_ms(lat[mul & delivered])
             dl_p50, dl_p99 = _percentiles_ms(lat[mdl & delivered])
-            causes = Counter(str(c) for c in packets["lost_cause"][lost])
+            causes = causes_by_loop.get(r["loop"], Counter())
             r.update(ul_packets=int(mul.sum()), ul_injected_mbps=float(size[mul].sum()) * 8 / sim / 1e6,
                      ul_throughput_mbps=float(size[mul & delivered].sum()) * 8 / sim / 1e6,
                      ul_latency_p50_ms=ul_p50, ul_latency_p99_ms=ul_p99, dl_latency_p50_ms=dl_p50,
-                     dl_latency_p99_ms=dl_p99, lost_packets=int(lost.sum()),
+                     dl_latency_p99_ms=dl_p99, lost_packets=int((mine & lost_rows).sum()),
                      lost_causes="; ".join(f"{k} x{n}" for k, n in sorted(causes.items())))
     write_table(run_dir / "loops.parquet", rows)
     return rows
