@@ -12,9 +12,10 @@ import numpy as np
 
 from domain import cell_geometry as g
 from domain.policy import LoopState, Qos, make_policy
+from domain.policy_features import LIFTED_M, spawn_time_us
 from domain.tracker import Tracker
 from fabric import metrics
-from scenario.schema import PolicyConfig
+from scenario.schema import CellConfig, PolicyConfig, Scenario
 
 # An unchanged QoS is signalled again this often: the downlink can lose it.
 QOS_REFRESH_US = 1_000_000
@@ -30,17 +31,46 @@ def update_tracks(tracker: Tracker, capture_us: int, positions: list[np.ndarray]
 
 
 class CoDesign:
-    """The co-design policy for a set of loops, and which QoS each camera was last told."""
+    """The co-design policy for a set of loops, and which QoS each camera was last told.
 
-    def __init__(self, cfg: PolicyConfig, belt_speed_m_s: float) -> None:
+    ``cell`` is the scenario's CellConfig (a bare belt speed in m/s is accepted too: the cell
+    is then known by its speed only); ``loops`` is how many loops share the radio cell and
+    ``fps`` the cameras' frame rate. Per loop it remembers when the newest part it has seen
+    landed on the belt, so that a policy knows when the next one is due."""
+
+    def __init__(self, cfg: PolicyConfig, cell: CellConfig | float, loops: int = 1,
+                 fps: float = 30.0) -> None:
         self.policy = make_policy(cfg)
-        self.belt_speed_m_s = belt_speed_m_s
+        self.object_period_s: float | None = None
+        if isinstance(cell, CellConfig):
+            self.belt_speed_m_s, self.object_period_s = cell.belt_speed_m_s, cell.object_period_s
+        else:
+            self.belt_speed_m_s = float(cell)
+        self.loops = loops
+        self.fps = fps
         self.sent: dict[int, tuple[Qos, int]] = {}
+        self.last_spawn_us: dict[int, int] = {}
+
+    @classmethod
+    def for_scenario(cls, sc: Scenario) -> CoDesign:
+        """The co-design of a scenario's loops: its policy, cell, loop count and camera rate."""
+        return cls(sc.policy, sc.cell, sc.loops, sc.camera.fps)
+
+    def state(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> LoopState:
+        """What the Edge knows of ``loop`` now."""
+        tracks = tracker.report(g.BELT_HALF_WIDTH)
+        for tr in tracks:
+            if tr["p"][2] <= g.BELT_TOP_Z + LIFTED_M:  # a part riding the belt: when it landed
+                spawn = spawn_time_us(tr, self.belt_speed_m_s)
+                last = self.last_spawn_us.get(loop)
+                if last is None or spawn > last:
+                    self.last_spawn_us[loop] = spawn
+        return LoopState(now_us, tracks, last_frame_us, self.belt_speed_m_s, self.object_period_s,
+                         self.loops, self.fps, self.last_spawn_us.get(loop))
 
     def decide(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> Qos:
         """The policy's QoS for ``loop`` from what the Edge knows of it now."""
-        state = LoopState(now_us, tracker.report(g.BELT_HALF_WIDTH), last_frame_us, self.belt_speed_m_s)
-        qos = self.policy.decide(state)
+        qos = self.policy.decide(self.state(loop, now_us, tracker, last_frame_us))
         metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
         return qos
 

@@ -191,13 +191,24 @@ class EdgeConfig(Strict):
 class PolicyConfig(Strict):
     """The co-design policy (DESIGN 7)."""
 
-    name: Literal["none", "fixed", "heuristic"] = Field(default="none", description="policy")
+    name: Literal["none", "fixed", "heuristic", "learned"] = Field(
+        default="none", description="policy: `none` (PDP 1, no budget), `fixed` (constant `pdp`), "
+        "`heuristic` (rules on the belt's kinematics and the tracker's sd, domain/policy.py) or "
+        "`learned` (a network trained with deep RL, run with ONNX Runtime: `learned_model`)")
     pdp: float = Field(default=1.0, gt=0, le=1, description="`fixed`: the constant PDP")
-    idle_pdp: float = Field(default=0.2, gt=0, le=1, description="`heuristic`: PDP with no object near")
-    track_pdp: float = Field(default=0.5, gt=0, le=1, description="`heuristic`: PDP while a fresh track approaches")
-    approach_s: float = Field(default=1.0, gt=0, description="`heuristic`: full PDP this long before the grasp")
-    stale_ms: float = Field(default=150.0, gt=0, description="`heuristic`: full PDP when the track is older")
-    latency_budget_ms: float = Field(default=100.0, gt=0, description="L_r signalled with the PDP")
+    idle_pdp: float = Field(default=0.2, gt=0, le=1,
+                            description="`heuristic`: PDP while the belt is empty and no part is due")
+    track_pdp: float = Field(default=0.5, gt=0, le=1,
+                             description="`heuristic`: lowest PDP while a part is tracked upstream")
+    approach_s: float = Field(default=1.0, gt=0, description="`heuristic`: PDP 1 from this long (in "
+                              "belt travel time) before a part reaches the pick window")
+    stale_ms: float = Field(default=150.0, gt=0, description="`heuristic`: an upstream part's estimate "
+                            "older than this is refreshed before the part's approach starts")
+    latency_budget_ms: float = Field(default=100.0, gt=0,
+                                     description="L_r signalled with the PDP (`fixed`, `heuristic`)")
+    learned_model: str | None = Field(
+        default=None, description="`learned`: the ONNX model (its model card, the .json beside it, "
+        "must be there too); default domain/models/policy.onnx, made by `make train-policy`")
 
 
 class NetsimConfig(Strict):

@@ -34,7 +34,7 @@ class EdgeFederate(Federate):
         self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.cell.object_size_m)
         self.loops = list(range(sc.detailed_loops))
         self.trackers = {i: Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
-        self.codesign = CoDesign(sc.policy, sc.cell.belt_speed_m_s)
+        self.codesign = CoDesign.for_scenario(sc)
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
         self.frames = self.table("frames")

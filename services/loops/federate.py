@@ -65,7 +65,7 @@ class LoopsFederate(Federate):
         self.sizes = np.asarray(model["frame_bytes"], dtype=np.int64)
         self.error_sd = float(model["estimator_error_sd_m"])
         self.miss_rate = float(model["estimator_miss_rate"])
-        self.codesign = CoDesign(sc.policy, sc.cell.belt_speed_m_s)
+        self.codesign = CoDesign.for_scenario(sc)
         nodes = sc.nodes
 
         def modelled(profile: Any) -> Any:

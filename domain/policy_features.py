@@ -1,0 +1,105 @@
+"""The learned co-design policy's contract: its observation, built from a ``LoopState`` by the one
+function the training environment and the Edge both call, and its action sets.
+
+The observation is what the Edge knows of a loop, in units that carry across cells: for the two
+parts that need the arm first, where they are relative to the pick window (in window lengths and
+in seconds of belt travel), their measured speed, the tracker's position sd, the estimate's age;
+whether a part is lifted off the belt (the arm holds it: the only sign of the robot's phase the
+Edge sees); the age of the last frame; when the next part is due; the cell (belt speed, object
+period) and its load (loops sharing the cell). Every feature is scaled to a few units and
+clipped to [-OBS_LIMIT, OBS_LIMIT].
+
+A model records ``FEATURE_NAMES`` and the action levels it was trained with (policy.json); the
+learned policy refuses a model whose names differ, so changing a feature means retraining.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from domain import cell_geometry as g
+
+if TYPE_CHECKING:
+    from domain.policy import LoopState
+
+TRACK_SLOTS = 2  # parts described, most urgent first
+TRACK_FEATURES = ("present", "window_pos", "t_reach", "t_exit", "speed", "sd", "age")
+GLOBAL_FEATURES = ("n_parts", "lifted", "frame_age", "next_part", "belt_speed", "object_period", "load")
+FEATURE_NAMES = tuple(f"track{k}_{f}" for k in range(TRACK_SLOTS) for f in TRACK_FEATURES) + GLOBAL_FEATURES
+N_FEATURES = len(FEATURE_NAMES)
+OBS_LIMIT = 5.0
+
+# Action sets: the PDP levels and latency budgets the learned policy chooses from.
+PDP_LEVELS = (0.1, 0.25, 0.5, 0.75, 1.0)
+BUDGET_LEVELS_MS = (25, 50, 100, 200)
+
+WINDOW_M = g.PICK_X_RANGE[1] - g.PICK_X_RANGE[0]
+LIFTED_M = 0.09  # a part centre this far above the belt is off it (largest half edge + margin)
+DEFAULT_OBJECT_PERIOD_S = 4.0  # assumed when the loop state does not say
+LOOPS_SCALE = 20.0  # loops a cell carries at PDP 1 (about 180 Mbit/s of 8.8 Mbit/s cameras)
+TIME_SCALE_S = 2.0
+AGE_SCALE_S = 0.5
+SD_SCALE_M = 0.01
+SPEED_SCALE_M_S = 0.5
+PERIOD_SCALE_S = 6.0
+MIN_SPEED_M_S = 0.02  # guards divisions by the belt speed
+
+
+def _clip(x: float) -> float:
+    return float(min(OBS_LIMIT, max(-OBS_LIMIT, x)))
+
+
+def belt_tracks(state: LoopState) -> list[tuple[float, dict]]:
+    """Parts on the belt that the arm can still pick, as (predicted x now, track), most urgent
+    (furthest downstream) first. Lifted parts and parts past the window are left out."""
+    out = []
+    for tr in state.tracks:
+        age_s = (state.now_us - tr["t_us"]) / 1e6
+        x = tr["p"][0] + tr["v"][0] * age_s
+        if tr["p"][2] > g.BELT_TOP_Z + LIFTED_M or x > g.PICK_X_RANGE[1]:
+            continue
+        out.append((x, tr))
+    out.sort(key=lambda xt: -xt[0])
+    return out
+
+
+def spawn_time_us(track: dict, belt_speed_m_s: float) -> int:
+    """When a tracked part landed on the belt, from its position and the belt speed."""
+    travel_s = (track["p"][0] - g.SPAWN_X) / max(belt_speed_m_s, MIN_SPEED_M_S)
+    return int(track["t_us"] - max(0.0, travel_s) * 1e6)
+
+
+def next_part_s(state: LoopState) -> float:
+    """Seconds until the next part is due on the belt, from the newest part's spawn time and the
+    object period (negative: overdue; 0 when nothing is known)."""
+    if state.last_spawn_us is None:
+        return 0.0
+    period = state.object_period_s or DEFAULT_OBJECT_PERIOD_S
+    return (state.last_spawn_us - state.now_us) / 1e6 + period
+
+
+def features(state: LoopState) -> np.ndarray:
+    """The observation of ``state``: float32, shape (N_FEATURES,), names FEATURE_NAMES."""
+    v = max(state.belt_speed_m_s, MIN_SPEED_M_S)
+    x0, x1 = g.PICK_X_RANGE
+    out: list[float] = []
+    parts = belt_tracks(state)
+    for k in range(TRACK_SLOTS):
+        if k < len(parts):
+            x, tr = parts[k]
+            age_s = max(0.0, (state.now_us - tr["t_us"]) / 1e6)
+            out += [1.0, (x - x0) / WINDOW_M, (x0 - x) / v / TIME_SCALE_S, (x1 - x) / v / TIME_SCALE_S,
+                    tr["v"][0] / SPEED_SCALE_M_S, tr.get("sd", 0.0) / SD_SCALE_M, age_s / AGE_SCALE_S]
+        else:  # no part: far upstream, plenty of time, nothing to refresh
+            out += [0.0, -2.0, OBS_LIMIT, OBS_LIMIT, 0.0, 0.0, 0.0]
+    lifted = any(tr["p"][2] > g.BELT_TOP_Z + LIFTED_M and abs(tr["p"][1]) <= g.BELT_HALF_WIDTH
+                 for tr in state.tracks)
+    frame_age = (OBS_LIMIT if state.last_frame_us is None
+                 else (state.now_us - state.last_frame_us) / 1e6 / AGE_SCALE_S)
+    period = state.object_period_s or DEFAULT_OBJECT_PERIOD_S
+    out += [len(parts) / 2.0, float(lifted), frame_age, next_part_s(state) / period,
+            state.belt_speed_m_s / SPEED_SCALE_M_S, period / PERIOD_SCALE_S, state.loops / LOOPS_SCALE]
+    return np.array([_clip(x) if math.isfinite(x) else 0.0 for x in out], dtype=np.float32)

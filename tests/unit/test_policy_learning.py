@@ -1,0 +1,222 @@
+"""The learned co-design policy: its observation (one function for training and the Edge), the
+training environment (Gymnasium's checker, determinism per seed), the network model, the
+shipped ONNX model under the ``learned`` policy, the errors when a model is missing, the
+kinematic heuristic, and (with torch) the quick training path end to end."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from domain import cell_geometry as g
+from domain import policy_features as F
+from domain.edge_side import CoDesign
+from domain.policy import DEFAULT_POLICY_MODEL, LoopState, make_policy
+from domain.tracker import Tracker
+from scenario.schema import CellConfig, PolicyConfig, Scenario
+
+ROOT = Path(__file__).parents[2]
+needs_gym = pytest.mark.skipif(importlib.util.find_spec("gymnasium") is None,
+                               reason="the training environment needs gymnasium (pip install gymnasium)")
+
+
+def track(tid: int, x: float, t_us: int = 0, v: float = 0.2, z: float = 0.78, sd: float = 0.003) -> dict:
+    return {"id": tid, "t_us": t_us, "p": [x, 0.0, z], "v": [v, 0.0, 0.0], "sd": sd}
+
+
+def state(tracks: list[dict], now_us: int = 0, belt: float = 0.2, **kw: object) -> LoopState:
+    return LoopState(now_us, tracks, 0, belt, **kw)  # type: ignore[arg-type]
+
+
+# ---- the observation ----------------------------------------------------------------------------
+def test_features_describe_the_most_urgent_parts_first() -> None:
+    s = state([track(0, -0.5), track(1, 0.0), track(2, 0.9), track(3, -0.2, z=0.95)], now_us=100_000,
+              object_period_s=3.0, loops=10, last_spawn_us=50_000)
+    x = F.features(s)
+    assert x.shape == (F.N_FEATURES,) and x.dtype == np.float32
+    assert len(F.FEATURE_NAMES) == F.N_FEATURES == len(set(F.FEATURE_NAMES))
+    obs = dict(zip(F.FEATURE_NAMES, x.tolist(), strict=True))
+    # Part 2 is past the window and part 3 is lifted: the slots hold part 1 then part 0.
+    assert obs["track0_present"] == 1.0 and obs["track1_present"] == 1.0
+    x1 = 0.0 + 0.2 * 0.1
+    assert obs["track0_window_pos"] == pytest.approx((x1 - g.PICK_X_RANGE[0]) / F.WINDOW_M, abs=1e-5)
+    assert obs["track0_t_reach"] < 0 < obs["track1_t_reach"]  # inside the window / upstream
+    assert obs["n_parts"] == 1.0 and obs["lifted"] == 1.0
+    assert obs["load"] == pytest.approx(10 / F.LOOPS_SCALE)
+    assert obs["next_part"] == pytest.approx((0.05 - 0.1 + 3.0) / 3.0, abs=1e-5)
+    assert np.all(np.abs(x) <= F.OBS_LIMIT)
+
+
+def test_features_of_an_empty_belt_are_finite_and_bounded() -> None:
+    s = LoopState(10**9, [], None, 0.0)  # no frame yet, a stopped belt: nothing divides by zero
+    x = F.features(s)
+    assert np.all(np.isfinite(x)) and np.all(np.abs(x) <= F.OBS_LIMIT)
+    assert x[F.FEATURE_NAMES.index("track0_present")] == 0.0
+
+
+def test_codesign_builds_the_state_from_the_cell_and_remembers_spawns() -> None:
+    sc = Scenario(loops=12, cell=CellConfig(belt_speed_m_s=0.3, object_period_s=3.0))
+    cd = CoDesign.for_scenario(sc)
+    tracker = Tracker((0.3, 0.0, 0.0))
+    tracker.update(400_000, [np.array([-0.4, 0.0, 0.78])])
+    s = cd.state(0, 450_000, tracker, 400_000)
+    assert (s.belt_speed_m_s, s.object_period_s, s.loops, s.fps) == (0.3, 3.0, 12, 30)
+    # Landed at SPAWN_X: 0.15 m of belt at 0.3 m/s before the frame.
+    assert s.last_spawn_us == pytest.approx(400_000 - 0.15 / 0.3 * 1e6, abs=1)
+    # The old constructor (a belt speed) still works: the cell is then known by its speed.
+    old = CoDesign(PolicyConfig(), 0.2)
+    assert old.state(0, 0, Tracker(), None).object_period_s is None
+
+
+# ---- the kinematic heuristic --------------------------------------------------------------------
+def test_heuristic_full_pdp_by_time_to_the_window_on_any_belt() -> None:
+    h = make_policy(PolicyConfig(name="heuristic", approach_s=1.0))
+    x0 = g.PICK_X_RANGE[0]
+    for belt in (0.1, 0.2, 0.5):
+        near = track(0, x0 - 0.9 * belt, v=belt)  # 0.9 s of belt travel before the window
+        far = track(0, x0 - 1.5 * belt, v=belt)
+        assert h.decide(state([near], belt=belt)).pdp == 1.0
+        assert h.decide(state([far], belt=belt)).pdp < 1.0
+
+
+def test_heuristic_never_forces_pdp_1_for_an_old_upstream_estimate() -> None:
+    """Under load every estimate is old: upstream parts must not push every loop to PDP 1."""
+    h = make_policy(PolicyConfig(name="heuristic", approach_s=1.0, stale_ms=150, track_pdp=0.5))
+    far = track(0, -1.4, v=0.2, t_us=0)  # 5 s from the window when seen
+    assert h.decide(state([far], now_us=200_000)).pdp < 1.0
+    # ... but the PDP rises as its prediction leaves the tracker's gate.
+    assert h.decide(state([far], now_us=380_000)).pdp > h.decide(state([far], now_us=0)).pdp
+
+
+def test_heuristic_on_an_empty_belt_waits_for_the_next_part() -> None:
+    h = make_policy(PolicyConfig(name="heuristic", idle_pdp=0.1))
+    kw = {"object_period_s": 2.0, "last_spawn_us": 0}
+    assert h.decide(state([], now_us=500_000, belt=0.5, **kw)).pdp == 0.1  # cannot have landed yet
+    fast = h.decide(state([], now_us=1_500_000, belt=0.5, **kw)).pdp  # may land any time
+    slow = h.decide(state([], now_us=1_500_000, belt=0.1, **kw)).pdp
+    assert fast > slow >= 0.1  # a fast belt leaves less time to see a new part
+
+
+# ---- the learned policy at run time ------------------------------------------------------------
+def test_learned_policy_runs_the_shipped_model() -> None:
+    pol = make_policy(PolicyConfig(name="learned"))
+    levels_us = {int(b * 1000) for b in F.BUDGET_LEVELS_MS}
+    states = [state([]), state([track(0, -0.5)], now_us=30_000, loops=30),
+              state([track(0, 0.1), track(1, -0.5)], now_us=60_000, belt=0.4, object_period_s=2.5),
+              state([track(0, -0.3, z=0.9)], now_us=10**6, loops=40)]
+    for s in states:
+        q = pol.decide(s)
+        assert min(F.PDP_LEVELS) <= q.pdp <= 1.0
+        assert q.pdb_us in levels_us
+    card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
+    assert card["features"] == list(F.FEATURE_NAMES) and "lambda" in card
+
+
+def test_missing_model_raises_naming_the_file(tmp_path: Path) -> None:
+    missing = tmp_path / "policy.onnx"
+    with pytest.raises(FileNotFoundError, match=str(missing)) as err:
+        make_policy(PolicyConfig(name="learned", learned_model=str(missing)))
+    assert "make train-policy" in str(err.value)
+
+
+def test_model_trained_on_other_features_is_refused(tmp_path: Path) -> None:
+    model = tmp_path / "policy.onnx"
+    shutil.copyfile(DEFAULT_POLICY_MODEL, model)
+    card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
+    card["features"] = card["features"][:-1]
+    model.with_suffix(".json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="other features"):
+        make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+
+
+# ---- the training environment -----------------------------------------------------------------
+@needs_gym
+def test_environment_passes_gymnasium_checker() -> None:
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+
+    from training.policy.env import ENV_ID, PickLoopEnv
+
+    check_env(PickLoopEnv(episode_s=3.0), skip_render_check=True)
+    env = gym.make(ENV_ID, episode_s=1.0)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (F.N_FEATURES,)
+    env.close()
+
+
+@needs_gym
+def test_environment_is_deterministic_per_seed() -> None:
+    from training.policy.env import PickLoopEnv
+
+    def trace(seed: int) -> tuple[list[np.ndarray], list[float], dict]:
+        env = PickLoopEnv(episode_s=4.0)
+        obs, info = env.reset(seed=seed)
+        env.action_space.seed(seed)
+        out, rewards = [obs], []
+        truncated = False
+        while not truncated:
+            obs, r, _, truncated, _ = env.step(env.action_space.sample())
+            out.append(obs)
+            rewards.append(r)
+        return out, rewards, info
+
+    a, b, c = trace(3), trace(3), trace(4)
+    assert len(a[0]) == 81  # 4 s of 50 ms policy periods, plus the first observation
+    assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0], strict=True)) and a[1] == b[1]
+    assert a[2] == b[2] and a[2]["cell"] != c[2]["cell"]
+
+
+@needs_gym
+def test_observation_is_the_shared_feature_function_and_cells_stay_in_the_schema() -> None:
+    from training.policy.cells import DEFAULT_FAMILY
+    from training.policy.env import PickLoopEnv
+
+    env = PickLoopEnv(episode_s=2.0)
+    obs, _ = env.reset(seed=1)
+    for _ in range(10):
+        obs, *_ = env.step(np.array([4, 2]))
+    assert np.array_equal(obs, F.features(env.loop_state()))
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # the family's draws pass the schema's validators (CellConfig raises)
+        cell, loops = DEFAULT_FAMILY.draw(rng)
+        assert 0.1 <= cell.belt_speed_m_s <= 0.5 and 2.0 <= cell.object_period_s <= 6.0 and 1 <= loops <= 40
+
+
+@needs_gym
+def test_network_model_follows_the_measured_cell() -> None:
+    from training.policy.network import NetworkModel
+
+    net = NetworkModel()
+    assert net.frame_loss(50, None) < 0.01 < net.frame_loss(300, None)
+    assert net.frame_loss(200, 25) > net.frame_loss(200, 200)  # a tight budget discards more
+    rng = np.random.default_rng(0)
+    light = [net.frame(50, 100, rng) for _ in range(300)]
+    heavy = [x for x in (net.frame(190, 100, rng) for _ in range(300)) if x is not None]
+    assert all(x is not None for x in light)
+    assert np.median(heavy) > np.median(light)
+    # A 100 ms budget bounds what arrives (packets already in HARQ when it expires finish).
+    assert max(heavy) <= 120_000
+
+
+# ---- training ------------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.skipif(any(importlib.util.find_spec(m) is None for m in ("torch", "onnx", "stable_baselines3", "gymnasium")),
+                    reason="training needs torch, onnx, gymnasium and stable-baselines3 (pip install -e '.[train]')")
+def test_quick_training_exports_a_model_the_edge_loads(tmp_path: Path) -> None:
+    """PPO on a tiny budget, ONNX export, model card, curve; the ``learned`` policy loads it."""
+    proc = subprocess.run([sys.executable, "-m", "training.policy.train", "--quick", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "wrote " in proc.stdout
+    card = json.loads((tmp_path / "policy.json").read_text())
+    assert card["onnx_check"]["argmax_agreement"] == 1.0 and card["evaluation"]["learned"]["tasks"] > 0
+    assert (tmp_path / "training_curve.png").stat().st_size > 0
+    pol = make_policy(PolicyConfig(name="learned", learned_model=str(tmp_path / "policy.onnx")))
+    assert 0.1 <= pol.decide(state([track(0, -0.5)])).pdp <= 1.0

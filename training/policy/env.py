@@ -1,0 +1,268 @@
+"""One co-design control loop as a Gymnasium environment (``cosim5g/PickLoop-v0``).
+
+A cell drawn from the randomised family (cells.py) runs in MuJoCo without rendering: parts
+arrive by the physics federate's spawn plan, the real ``PickController`` picks them. The camera
+keeps each 30 frame/s capture with the policy's PDP; a kept frame is compressed (the platform's
+modelled job time), crosses the uplink with a latency or a loss drawn from the network model
+(network.py) at the cell's current offered load and the policy's latency budget L, and at the
+Edge becomes the ground-truth part positions at capture plus the real estimator's measured error
+and misses (domain/data/frame_model.json), folded into the Edge's ``Tracker``; the tracks reach
+the controller after a downlink latency. A new QoS reaches the camera after a downlink latency.
+
+Load (mean field): the other loops of the radio cell run the same policy, so the cell's offered
+load is ``loops x camera rate x PDP_bar``, where PDP_bar is this loop's own PDP averaged over
+the last LOAD_TAU_S seconds: a policy that injects less lowers its own (and everyone's) latency.
+
+One step is one policy period (the scenario's ``edge.policy_period_ms``, 50 ms). The
+observation is ``domain.policy_features.features`` of the ``LoopState`` the Edge's ``CoDesign``
+builds, as at run time. The action is (PDP level, latency budget level). The reward is
+
+    r = -Cost + lambda * Perf
+    Cost = PDP x (1 - fraction of the injected bytes discarded late) x period_s
+           (seconds of PDP-1 camera traffic the loop puts on the air),
+    Perf = +1 per part placed, -1 per part missed or dropped, when the task ends,
+
+so lambda is what one task is worth in seconds of full-rate camera traffic. An episode is
+``episode_s`` of simulated time (truncated, never terminated).
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+from importlib import resources
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from domain.arm import SERVO_LAG_S
+from domain.codec import slot_after
+from domain.controller import PickController
+from domain.edge_side import CoDesign, update_tracks
+from domain.policy import LoopState, Qos
+from domain.policy_features import BUDGET_LEVELS_MS, N_FEATURES, OBS_LIMIT, PDP_LEVELS, features
+from domain.tracker import Tracker
+from domain.world import World, spawn_plan
+from fabric.compute import DEFAULT_JOB_MODELS
+from fabric.seeding import rng
+from scenario.schema import CellConfig, PolicyConfig, Scenario
+from training.policy.cells import DEFAULT_FAMILY, CellFamily
+from training.policy.network import NetworkModel
+
+ENV_ID = "cosim5g/PickLoop-v0"
+DEFAULT_LAMBDA = 10.0
+EPISODE_S = 30.0
+LOAD_TAU_S = 5.0  # averaging time of the mean-field PDP
+SLOT_US = 1000  # NR slot at 15 kHz: packets enter the UE buffer at slot boundaries
+
+
+def load_frame_model() -> dict[str, Any]:
+    return json.loads(resources.files("domain").joinpath("data/frame_model.json").read_text())
+
+
+def action_qos(action: Any) -> Qos:
+    """The QoS of an action (PDP level index, budget level index)."""
+    a = np.asarray(action).reshape(-1)
+    return Qos(PDP_LEVELS[int(a[0])], int(BUDGET_LEVELS_MS[int(a[1])] * 1000))
+
+
+class PickLoopEnv(gym.Env):
+    """A co-design loop of one cell; see the module docstring."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, lam: float = DEFAULT_LAMBDA, episode_s: float = EPISODE_S,
+                 family: CellFamily = DEFAULT_FAMILY, cell: CellConfig | None = None,
+                 loops: int | None = None, network: NetworkModel | None = None) -> None:
+        super().__init__()
+        self.lam = float(lam)
+        self.episode_s = float(episode_s)
+        self.family = family
+        self.fixed_cell = cell
+        self.fixed_loops = loops
+        self.net = network or NetworkModel()
+        fm = load_frame_model()
+        self.error_sd = float(fm["estimator_error_sd_m"])
+        self.miss_rate = float(fm["estimator_miss_rate"])
+        self.observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (N_FEATURES,), np.float32)
+        self.action_space = spaces.MultiDiscrete([len(PDP_LEVELS), len(BUDGET_LEVELS_MS)])
+        self.sc: Scenario | None = None
+
+    # ---- episode --------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        opts = options or {}
+        drawn_cell, drawn_loops = self.family.draw(self.np_random)
+        cell = opts.get("cell") or self.fixed_cell or drawn_cell
+        loops = int(opts.get("loops") or self.fixed_loops or drawn_loops)
+        ep_seed = int(self.np_random.integers(2**31 - 1))
+        self.sc = sc = Scenario(seed=ep_seed, loops=1, detailed_loops=1, cell=cell,
+                                duration_s=self.episode_s + 1.0)
+        self.loops = loops
+        self.world = World(sc)
+        self.step_us = sc.physics_timestep_us
+        self.period_us = sc.edge.policy_period_ms * 1000
+        self.frame_us = sc.frame_period_us
+        self.ctl = PickController(sc.robot, cell.object_size_m, SERVO_LAG_S)
+        self.tracker = Tracker((cell.belt_speed_m_s, 0.0, 0.0))
+        self.codesign = CoDesign(PolicyConfig(), cell, loops, sc.camera.fps)
+        self.rng = {name: rng(ep_seed, f"policy-env/{name}")
+                    for name in ("keep", "net", "error", "compute", "phase")}
+        self.last_frame_us: int | None = None
+        self.pdp_bar = float(self.rng["phase"].uniform(0.25, 1.0))  # the other loops' recent PDP
+        self.qos_camera = Qos(1.0, None)  # what the camera applies until told otherwise
+        self.qos = self.qos_camera
+        self.t_us = 0
+        self.end_us = int(self.episode_s * 1e6)
+        self.queue: list[tuple[int, int, int, str, Any]] = []
+        self.seq = 0
+        for at, part in spawn_plan(sc, rng(ep_seed, "physics/spawn-c0"), self.step_us):
+            self._push(at, 0, "spawn", part)
+        phase = int(self.rng["phase"].integers(0, self.frame_us // self.step_us)) * self.step_us
+        self._push(phase, 1, "frame", None)
+        self._push(0, 3, "tick", None)
+        self.stats = {"steps": 0, "placed": 0, "missed": 0, "dropped": 0, "frames": 0, "frames_kept": 0,
+                      "frames_delivered": 0, "cost": 0.0, "pdp_sum": 0.0, "budget_ms_sum": 0.0,
+                      "load_sum": 0.0}
+        return self._obs(), {"cell": cell.model_dump(), "loops": loops, "seed": ep_seed}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        return self.step_qos(action_qos(action))
+
+    def step_qos(self, qos: Qos) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply ``qos`` for one policy period (any policy's QoS, not only the action set's)."""
+        budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
+        load = self.load_mbps()
+        self.qos = qos
+        # The QoS message crosses the downlink before the camera applies it.
+        self._push(slot_after(self.t_us, SLOT_US) + self.net.downlink(load, self.rng["net"]), 2, "qos", qos)
+        t_next = self.t_us + self.period_us
+        self._run_until(t_next)
+        dt_s = self.period_us / 1e6
+        cost = qos.pdp * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
+        self.pdp_bar += (qos.pdp - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
+        ended = self.world.take_ended()
+        placed = sum(1 for t in ended if t["outcome"] == "placed")
+        missed = sum(1 for t in ended if t["outcome"] == "missed")
+        dropped = sum(1 for t in ended if t["outcome"] == "dropped")
+        reward = -cost + self.lam * (placed - missed - dropped)
+        st = self.stats
+        st["steps"] += 1
+        st["placed"] += placed
+        st["missed"] += missed
+        st["dropped"] += dropped
+        st["cost"] += cost
+        st["pdp_sum"] += qos.pdp
+        st["budget_ms_sum"] += budget_ms if budget_ms is not None else 0.0
+        st["load_sum"] += load
+        truncated = self.t_us >= self.end_us
+        info: dict[str, Any] = {"pdp": qos.pdp, "budget_ms": budget_ms, "load_mbps": load, "cost": cost,
+                                "placed": placed, "missed": missed, "dropped": dropped}
+        if truncated:
+            info["summary"] = self.summary()
+        return self._obs(), float(reward), False, truncated, info
+
+    def summary(self) -> dict[str, Any]:
+        """The episode so far: tasks, mean PDP, injected camera traffic, cost."""
+        st = self.stats
+        n = max(1, st["steps"])
+        ended = st["placed"] + st["missed"] + st["dropped"]
+        return {"tasks": ended, "placed": st["placed"], "missed": st["missed"], "dropped": st["dropped"],
+                "success": st["placed"] / ended if ended else 1.0, "mean_pdp": st["pdp_sum"] / n,
+                "injected_mbps": st["pdp_sum"] / n * self.net.loop_rate_mbps,
+                "mean_budget_ms": st["budget_ms_sum"] / n, "mean_load_mbps": st["load_sum"] / n,
+                "cost": st["cost"], "frames": st["frames"], "frames_kept": st["frames_kept"],
+                "frames_delivered": st["frames_delivered"], "holds": self.ctl.holds}
+
+    def load_mbps(self) -> float:
+        """Offered uplink load of the radio cell (mean field), Mbit/s."""
+        return self.loops * self.net.loop_rate_mbps * self.pdp_bar
+
+    def loop_state(self) -> LoopState:
+        """What the Edge knows of the loop now (the policy's input)."""
+        return self.codesign.state(0, self.t_us, self.tracker, self.last_frame_us)
+
+    def _obs(self) -> np.ndarray:
+        return features(self.loop_state())
+
+    # ---- the loop's events ---------------------------------------------------------------------
+    def _push(self, t: int, order: int, kind: str, payload: Any) -> None:
+        heapq.heappush(self.queue, (t, order, self.seq, kind, payload))
+        self.seq += 1
+
+    def _job_us(self, kind: str) -> int:
+        """A job's duration on its node: the platform's modelled distribution (``model`` timing)."""
+        d = DEFAULT_JOB_MODELS[kind]
+        draw = self.rng["compute"].normal(d.mean_us, d.sd_us) if d.sd_us else d.mean_us
+        return max(1, int(round(max(draw, d.mean_us * 0.1))))
+
+    def _run_until(self, t_end: int) -> None:
+        assert self.sc is not None
+        sc, world, ctl = self.sc, self.world, self.ctl
+        while self.queue and self.queue[0][0] < t_end:
+            t, _, _, kind, payload = heapq.heappop(self.queue)
+            world.advance_to(t)
+            if kind == "spawn":
+                world.spawn(0, **payload)
+            elif kind == "frame":
+                self._capture(t)
+                self._push(t + self.frame_us, 1, "frame", None)
+            elif kind == "edge":
+                capture_us, positions = payload
+                tracks = update_tracks(self.tracker, capture_us, positions)
+                if tracks is not None:
+                    self.last_frame_us = capture_us
+                    dl = self.net.downlink(self.load_mbps(), self.rng["net"])
+                    self._push(slot_after(t, SLOT_US) + dl, 2, "pose", tracks)
+            elif kind == "pose":
+                ctl.on_estimate(payload)
+            elif kind == "qos":
+                self.qos_camera = payload
+            elif kind == "tick":
+                js = world.joint_state(0)
+                self._push(t + sc.robot.state_latency_us, 2, "state", (js["q"], js["gripped"]))
+                q, suction = ctl.step(t)
+                ready = t + self._job_us("control")
+                self._push(ready + sc.robot.actuation_latency_us, 2, "command", ([float(v) for v in q], suction))
+                self._push(t + sc.robot.control_period_us, 3, "tick", None)
+            elif kind == "state":
+                ctl.on_state(*payload)
+            elif kind == "command":
+                world.command(0, *payload)
+        world.advance_to(t_end)
+        self.t_us = t_end
+
+    def _capture(self, t: int) -> None:
+        """A camera frame at ``t``: kept with the camera's PDP, then compressed, sent and
+        estimated, or dropped."""
+        self.stats["frames"] += 1
+        qos = self.qos_camera
+        if not self.rng["keep"].random() < qos.pdp:
+            return
+        self.stats["frames_kept"] += 1
+        enter = slot_after(t + self._job_us("compress"), SLOT_US)
+        budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
+        latency = self.net.frame(self.load_mbps(), budget_ms, self.rng["net"])
+        if latency is None:
+            return
+        self.stats["frames_delivered"] += 1
+        err = self.rng["error"]
+        positions = []
+        for obj in self.world.objects(0):
+            if err.random() < self.miss_rate:
+                continue
+            positions.append(np.asarray(obj["p"]) + err.normal(0.0, self.error_sd, 3))
+        self._push(enter + latency + self._job_us("pose"), 2, "edge", (t, positions))
+
+
+def register() -> None:
+    """Register ``cosim5g/PickLoop-v0`` with Gymnasium (once)."""
+    if ENV_ID not in gym.registry:
+        gym.register(id=ENV_ID, entry_point="training.policy.env:PickLoopEnv",
+                     max_episode_steps=None, disable_env_checker=False)
+
+
+register()

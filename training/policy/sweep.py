@@ -1,0 +1,212 @@
+"""The lambda sweep: one PPO policy per task value lambda, evaluated with the baselines on the
+same held-out cells, as a Pareto table of injected camera traffic vs task success; the shipped
+lambda is chosen from it.
+
+    python -m training.policy.sweep [--lambdas 3,10,30,100] [--steps 150000] [--jobs 2] [--ship]
+    python -m training.policy.sweep --lambdas 3,10 --reuse --ship   # evaluate trained ones again
+    python -m training.policy.sweep --report                        # rebuild pareto.md only
+
+Choice rule: the lambda whose policy injects the least traffic among those that lose no task
+that PDP 1 (``none``) places, beyond 1 % of the tasks (the evaluation's resolution: tasks
+still on the belt when an episode ends make a few tasks differ between policies anyway); if
+none qualifies, the one that loses fewest. ``--ship`` copies that policy to
+domain/models/policy.onnx with its model card, the choice and its reasons added.
+
+Writes results/policy/pareto.{md,json} and results/policy/lambda-<lambda>/ (model, card, curve).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from domain.policy import DEFAULT_POLICY_MODEL
+from scenario.schema import PolicyConfig
+from training.policy import train as T
+
+RESULTS = T.ROOT / "results" / "policy"
+LOSS_TOLERANCE = 0.01  # tasks lost vs none, as a fraction of the tasks, still counted as none
+BASELINES = {
+    "none": PolicyConfig(name="none"),
+    "heuristic": PolicyConfig(name="heuristic"),
+    "fixed 0.5": PolicyConfig(name="fixed", pdp=0.5),
+    "fixed 0.25": PolicyConfig(name="fixed", pdp=0.25),
+    "fixed 0.1": PolicyConfig(name="fixed", pdp=0.1),
+}
+
+
+def lam_dir(lam: float) -> Path:
+    return RESULTS / f"lambda-{lam:g}"
+
+
+def train_one(lam: float, steps: int, seed: int, episodes: int) -> dict[str, Any]:
+    """Train and evaluate the policy of one lambda (in a worker process)."""
+    args = T.parser().parse_args(["--lambda", str(lam), "--steps", str(steps), "--seed", str(seed),
+                                  "--eval-episodes", str(episodes), "--out", str(lam_dir(lam)),
+                                  "--no-baselines"])
+    return T.run(args)
+
+
+def evaluate_baselines(episodes: int) -> dict[str, dict[str, Any]]:
+    from domain.policy import make_policy
+    from training.policy.evaluate import run_episodes
+
+    return {name: run_episodes(make_policy(cfg).decide, episodes=episodes) for name, cfg in BASELINES.items()}
+
+
+def pareto_rows(baselines: dict[str, dict[str, Any]], learned: dict[float, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per policy: success, tasks lost vs none, mean PDP, injected traffic; Pareto flag."""
+    from training.policy.evaluate import lost_to_policy
+
+    ref = baselines["none"]["rows"]
+    rows = []
+    entries: list[tuple[str, float | None, dict[str, Any]]] = [(name, None, res) for name, res in baselines.items()]
+    entries += [(f"learned (lambda {lam:g})", lam, res) for lam, res in sorted(learned.items())]
+    for name, lam, res in entries:
+        rows.append({"policy": name, "lambda": lam, "success": round(res["success"], 4),
+                     "placed": res["placed"], "tasks": res["tasks"],
+                     "lost_vs_none": lost_to_policy(res["rows"], ref),
+                     "mean_pdp": round(res["mean_pdp"], 4), "injected_mbps": round(res["injected_mbps"], 3),
+                     "mean_budget_ms": round(res["mean_budget_ms"], 1)})
+    for r in rows:  # dominated: another policy places as many and injects less, one strictly
+        r["pareto"] = not any(o is not r and o["success"] >= r["success"] and o["injected_mbps"] <= r["injected_mbps"]
+                              and (o["success"] > r["success"] or o["injected_mbps"] < r["injected_mbps"])
+                              for o in rows)
+    return rows
+
+
+def choose(rows: list[dict[str, Any]]) -> tuple[float, str]:
+    """The shipped lambda and why (module docstring's rule)."""
+    learned = [r for r in rows if r["lambda"] is not None]
+    ok = [r for r in learned if r["lost_vs_none"] <= LOSS_TOLERANCE * r["tasks"]]
+    if ok:
+        best = min(ok, key=lambda r: (r["injected_mbps"], -r["success"]))
+        why = (f"least injected traffic ({best['injected_mbps']:.2f} Mbit/s per loop, mean PDP "
+               f"{best['mean_pdp']:.2f}) among the lambdas that lose no more than "
+               f"{LOSS_TOLERANCE:.0%} of the tasks PDP 1 places ({best['lost_vs_none']} of {best['tasks']}); "
+               f"success {best['success']:.3f}")
+    else:
+        best = min(learned, key=lambda r: (r["lost_vs_none"], r["injected_mbps"]))
+        why = (f"no lambda kept every task PDP 1 places; fewest lost ({best['lost_vs_none']} of "
+               f"{best['tasks']}), injecting {best['injected_mbps']:.2f} Mbit/s per loop")
+    return float(best["lambda"]), why
+
+
+def markdown(rows: list[dict[str, Any]], chosen: float, why: str, meta: dict[str, Any]) -> str:
+    lines = [
+        "# Learned co-design policy: lambda sweep (Pareto table)",
+        "",
+        f"{meta['episodes']} held-out cells of the randomised family (seeds {meta['eval_seed']}..), "
+        f"{meta['episode_s']:g} s each, in the training environment (training/policy/env.py); every "
+        f"policy on the same cells. PPO {meta['steps']} steps per lambda, training seed {meta['seed']}.",
+        "Injected: camera traffic per loop at the policy's mean PDP. Lost vs none: tasks missed or "
+        "dropped beyond those PDP 1 lost on the same cell (PDP 1 itself loses tasks above the "
+        "cell's capacity, where the mean-field load of 1-40 loops overloads it).",
+        "",
+        "| policy | success | placed / tasks | lost vs none | mean PDP | injected Mbit/s per loop | mean L ms | Pareto |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        budget = f"{r['mean_budget_ms']:.0f}" if r["mean_budget_ms"] else "none"  # 0: never a budget
+        lines.append(f"| {r['policy']} | {r['success']:.3f} | {r['placed']} / {r['tasks']} | {r['lost_vs_none']} | "
+                     f"{r['mean_pdp']:.3f} | {r['injected_mbps']:.2f} | {budget} | "
+                     f"{'yes' if r['pareto'] else ''} |")
+    lines += ["", f"Shipped lambda: **{chosen:g}**: {why}.", ""]
+    return "\n".join(lines)
+
+
+def ship(lam: float, why: str, rows: list[dict[str, Any]], evaluation: dict[str, dict[str, Any]]) -> None:
+    """Copy the chosen policy to domain/models with the choice, and the sweep's evaluation of
+    it beside ``none`` and ``heuristic``, in its model card."""
+    src = lam_dir(lam)
+    dst = DEFAULT_POLICY_MODEL
+    shutil.copyfile(src / "policy.onnx", dst.with_suffix(".onnx.tmp"))
+    dst.with_suffix(".onnx.tmp").replace(dst)
+    card = json.loads((src / "policy.json").read_text())
+    card["lambda_choice"] = {"chosen": lam, "why": why, "rule": __doc__.split("Choice rule: ")[1].split("\n\n")[0]
+                             .replace("\n", " "), "sweep": "results/policy/pareto.md", "table": rows}
+    card["evaluation"] = {name: {k: v for k, v in res.items() if k != "rows"} for name, res in evaluation.items()}
+    card["evaluation_rows"] = {name: res["rows"] for name, res in evaluation.items()}
+    dst.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
+    if (src / "training_curve.png").is_file():
+        shutil.copyfile(src / "training_curve.png", RESULTS / "training_curve.png")
+    print(f"shipped lambda {lam:g}: {dst} and {dst.with_suffix('.json')}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--lambdas", default="3,10,30,100", help="comma-separated task values")
+    ap.add_argument("--steps", type=int, default=150_000, help="PPO steps per lambda")
+    ap.add_argument("--seed", type=int, default=1, help="training seed (the same for every lambda)")
+    ap.add_argument("--episodes", type=int, default=20, help="held-out evaluation cells")
+    ap.add_argument("--jobs", type=int, default=2, help="lambdas trained at once (one core each)")
+    ap.add_argument("--ship", action="store_true", help="copy the chosen policy to domain/models")
+    ap.add_argument("--reuse", action="store_true",
+                    help="evaluate (again, with the code as it is) the models already trained in "
+                         "results/policy/lambda-*/ instead of training")
+    ap.add_argument("--report", action="store_true",
+                    help="rebuild results/policy/pareto.md from pareto.json (no training, no evaluation)")
+    args = ap.parse_args(argv)
+    if args.report:
+        saved = json.loads((RESULTS / "pareto.json").read_text())
+        md = markdown(saved["rows"], saved["chosen_lambda"], saved["why"], saved)
+        (RESULTS / "pareto.md").write_text(md)
+        print(md)
+        return 0
+    missing = T.missing_packages()
+    if missing:
+        print(f"SKIP: the sweep needs {missing} (pip install -e '.[train]'). Nothing trained.")
+        return 0
+    from training.policy.env import EPISODE_S
+    from training.policy.evaluate import EVAL_SEED, policy_for, pool, run_episodes
+
+    t0 = time.time()
+    lambdas = [float(x) for x in args.lambdas.split(",")]
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    if not args.reuse:
+        with ProcessPoolExecutor(max_workers=args.jobs) as workers:
+            futures = {lam: workers.submit(train_one, lam, args.steps, args.seed, args.episodes) for lam in lambdas}
+            baselines = evaluate_baselines(args.episodes)
+            for f in futures.values():
+                f.result()
+    else:
+        baselines = evaluate_baselines(args.episodes)
+    learned = {}
+    trained_steps = set()
+    for lam in lambdas:  # each training evaluated its policy on the same cells, through ONNX Runtime
+        card = json.loads((lam_dir(lam) / "policy.json").read_text())
+        trained_steps.add(card["training"]["steps"])
+        rows = card.get("evaluation_rows", {}).get("learned", [])
+        if len(rows) == args.episodes and not args.reuse:
+            learned[lam] = {**pool(rows), "rows": rows}
+        else:
+            learned[lam] = run_episodes(policy_for("learned", str(lam_dir(lam) / "policy.onnx")).decide,
+                                        episodes=args.episodes)
+    rows = pareto_rows(baselines, learned)
+    chosen, why = choose(rows)
+    steps = trained_steps.pop() if len(trained_steps) == 1 else sorted(trained_steps)
+    meta = {"episodes": args.episodes, "eval_seed": EVAL_SEED, "episode_s": EPISODE_S, "steps": steps,
+            "seed": args.seed, "lambdas": lambdas, "seconds": round(time.time() - t0, 1),
+            "command": "python -m training.policy.sweep " + " ".join(argv if argv is not None else sys.argv[1:])}
+    (RESULTS / "pareto.json").write_text(json.dumps({**meta, "chosen_lambda": chosen, "why": why, "rows": rows,
+                                                     "episode_rows": {r["policy"]: res["rows"] for r, res in zip(
+                                                         rows, [*baselines.values(), *[learned[k] for k in sorted(learned)]],
+                                                         strict=True)}}, indent=1) + "\n")
+    md = markdown(rows, chosen, why, meta)
+    (RESULTS / "pareto.md").write_text(md)
+    print(md)
+    if args.ship:
+        ship(chosen, why, rows, {"none": baselines["none"], "heuristic": baselines["heuristic"],
+                                 "learned": learned[chosen]})
+    print(f"sweep done in {meta['seconds']} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
