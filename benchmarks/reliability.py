@@ -103,8 +103,11 @@ def write(name: str, record: dict[str, Any], table: list[tuple[str, Any]]) -> No
 # ---- soak -------------------------------------------------------------------------------------
 
 def soak(runs: int, docker_runs: int, duration_s: float, results: Path) -> int:
+    from coordinator.process_memory import limit_malloc_arenas
     from coordinator.run import execute_run
     from scenario.schema import load_scenario
+
+    limit_malloc_arenas()  # as `cosim5g serve` does: this process is the coordinator of every run
 
     statuses: Counter[str] = Counter()
     reasons: Counter[str] = Counter()

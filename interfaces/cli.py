@@ -410,6 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from coordinator.process_memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # a coordinator (run, sweep, serve) lives through many runs' threads
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["netsim"]:  # its own argument parser, options included
         return cmd_netsim(argparse.Namespace(rest=argv[1:]))

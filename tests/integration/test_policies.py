@@ -1,0 +1,61 @@
+"""The co-design policies in whole runs: the learned policy runs at the Edge of the smoke scenario,
+and on cells drawn from the randomised family, neither ``heuristic`` nor ``learned`` costs a task
+that PDP 1 (``none``) places."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from training.policy.cells import DEFAULT_FAMILY
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).parents[2]
+MODEL_TIMING = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model"]
+FAMILY_SEED = 14  # the three cells of the check below
+
+
+def run(scenario: str, sets: list[str], results: Path) -> dict[str, Any]:
+    args = [a for s in sets for a in ("--set", s)]
+    proc = subprocess.run([sys.executable, "-m", "interfaces.cli", "run", scenario, *args, "--json", "--quiet",
+                           "--results", str(results)], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def placed(kpis: dict[str, Any]) -> set[tuple[int, int]]:
+    tasks = pq.read_table(Path(kpis["results_dir"]) / "tasks.parquet").to_pylist()
+    return {(t["cell"], t["task_id"]) for t in tasks if t["success"]}
+
+
+def test_learned_policy_runs_at_the_edge_of_the_smoke_scenario(tmp_path: Path) -> None:
+    k = run("configs/scenarios/smoke.yaml", ["policy.name=learned", *MODEL_TIMING], tmp_path)
+    assert k["status"] == "completed" and k["policy"] == "learned"
+    assert k["tasks"] >= 2 and k["tasks_placed"] == k["tasks"], k["task_outcomes"]
+    # It lowers the PDP where the control state allows: less traffic than every frame sent.
+    none = run("configs/scenarios/smoke.yaml", ["policy.name=none", *MODEL_TIMING], tmp_path)
+    assert k["ul_injected_mbps"] < 0.8 * none["ul_injected_mbps"]
+
+
+@pytest.mark.slow
+def test_co_design_places_every_task_pdp_1_places_on_three_cells_of_the_family(tmp_path: Path) -> None:
+    rng = np.random.default_rng(FAMILY_SEED)
+    for i in range(3):
+        cell, _ = DEFAULT_FAMILY.draw(rng)
+        drawn = cell.model_dump(include={"belt_speed_m_s", "object_period_s", "object_jitter_s",
+                                         "object_yaw_spread_deg", "object_size_spread_m",
+                                         "object_mass_spread_kg"})
+        sets = ["loops=4", "detailed_loops=0", "duration_s=40", f"seed={i + 1}", *MODEL_TIMING,
+                *[f"cell.{name}={value}" for name, value in drawn.items()]]
+        baseline = placed(run("configs/scenarios/baseline.yaml", sets, tmp_path))
+        assert baseline, f"cell {i}: no task placed at PDP 1 ({cell})"
+        for policy in ("heuristic", "learned"):
+            got = placed(run("configs/scenarios/co_design.yaml", [*sets, f"policy.name={policy}"], tmp_path))
+            assert baseline <= got, f"cell {i} ({cell}): {policy} lost {sorted(baseline - got)}"
