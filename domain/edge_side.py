@@ -1,7 +1,7 @@
 """The Edge side of a control loop, run alike by the Edge federate (detailed loops) and the
 abstract loops federate: folding a frame's estimates into the loop's tracker, the co-design step
-(loop state -> policy -> QoS, signalled to the camera when it changed) and the downlink packet
-that carries a pose or a QoS through netsim.
+(loop state -> policy -> QoS, signalled to the camera when it changed, and with lower-layer
+signalling to the gNB too) and the downlink packet that carries a pose or a QoS through netsim.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from domain import cell_geometry as g
+from domain.codec import slot_after
 from domain.policy import LoopState, Qos, make_policy
 from domain.policy_features import LIFTED_M, spawn_time_us
 from domain.tracker import Tracker
@@ -82,6 +83,16 @@ class CoDesign:
             return None
         self.sent[loop] = (qos, now_us)
         return {"type": "qos", "loop": loop, "pdp": qos.pdp, "pdb_us": qos.pdb_us}
+
+
+def lower_layer_qos(loop: int, qos: Qos, now_us: int, cfg: PolicyConfig, slot_us: int) -> tuple[int, dict[str, Any]]:
+    """When, and with what, the gNB learns a loop's QoS with ``policy.signalling: lower``: a
+    MAC-level control message (the camera flow's budget) that reaches the scheduler
+    ``control_latency_us`` after the decision, at a slot boundary; sent alongside the camera's
+    QoS message."""
+    ue = f"camera-{loop}"
+    return (slot_after(now_us + cfg.control_latency_us, slot_us),
+            {"flow": f"{ue}/video", "ue": ue, "pdb_us": qos.pdb_us, "pdp": qos.pdp})
 
 
 def downlink_packet(ue: str, what: str, size: int, dst: str, app: dict[str, Any]) -> dict[str, Any]:

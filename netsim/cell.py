@@ -53,10 +53,13 @@ class PacketOutcome:
 @dataclass(slots=True)
 class FlowQos:
     """Per-flow QoS: lower ``priority`` is served first; packets older than ``delay_budget_us``
-    are discarded at the sender (None: no budget)."""
+    are discarded at the sender (None: no budget). ``urgency`` weighs the flow's UE in a
+    proportional-fair ranking among UEs of equal priority (1: plain PF); the gNB sets it from a
+    budget it was told through lower-layer signalling."""
 
     priority: int = 10
     delay_budget_us: int | None = None
+    urgency: float = 1.0
 
 
 class Cell(ABC):
@@ -78,8 +81,9 @@ class Cell(ABC):
         """True while any buffer or HARQ process holds data, i.e. the next slot has work."""
 
     @abstractmethod
-    def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
-        """Change a flow's QoS (e.g. the co-design policy's latency budget L_r)."""
+    def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
+        """Change a flow's QoS (e.g. the co-design policy's latency budget L_r); ``ue`` names the
+        flow's UE where the QoS weighs its scheduling."""
 
     def stats(self) -> dict[str, Any]:
         """Counters for metrics and KPIs (free-form, numbers only)."""

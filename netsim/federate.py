@@ -26,6 +26,9 @@ from netsim.cell import (
 from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
 
+# Bounds of a UE's urgency weight in the PF ranking (budgets 8x shorter or longer than the usual).
+MAX_URGENCY = 8.0
+
 
 def make_cell(federate: Federate) -> Cell:
     """The cell model the scenario names, with the UEs of every loop at their hall positions."""
@@ -72,6 +75,9 @@ class NetsimFederate(Federate):
         self.latency_series = {d: metrics.PACKET_LATENCY.labels(d) for d in ("ul", "dl")}
 
     def on_message(self, msg: Message) -> None:
+        if msg.kind == "qos_ctl":
+            self._lower_layer_qos(msg.body)
+            return
         if msg.kind != "packet":
             raise self.unexpected(msg)
         if msg.t_us % self.slot_us:
@@ -89,6 +95,16 @@ class NetsimFederate(Federate):
         if refused is not None:
             self._record(refused)
         self._ensure_slot(msg.t_us)
+
+    def _lower_layer_qos(self, b: dict[str, Any]) -> None:
+        """A loop's QoS signalled to the gNB (``policy.signalling: lower``): the flow's delay budget,
+        and its UE weighed in the scheduler by the budget's urgency, the scenario's default budget
+        over this one (a loop given half the usual budget counts twice in the PF ranking)."""
+        pdb = b["pdb_us"]
+        reference_us = self.scenario.policy.latency_budget_ms * 1000
+        urgency = 1.0 if pdb is None else min(MAX_URGENCY, max(1.0 / MAX_URGENCY, reference_us / pdb))
+        self.flow_pdb[b["flow"]] = pdb
+        self.cell.set_flow_qos(b["flow"], FlowQos(priority=10, delay_budget_us=pdb, urgency=urgency), ue=b["ue"])
 
     def _ensure_slot(self, t_us: int) -> None:
         if self.slot_scheduled is None:

@@ -46,8 +46,8 @@ class SimpleCell(Cell):
         self.busy_slots = {"ul": 0, "dl": 0}
         self.slots = 0
 
-    def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
-        self.qos[flow] = qos
+    def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
+        self.qos[flow] = qos  # strict priority only: the simple cell has no per-UE ranking
 
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
         key = (packet.ue, packet.direction)

@@ -209,6 +209,14 @@ class PolicyConfig(Strict):
     learned_model: str | None = Field(
         default=None, description="`learned`: the ONNX model (its model card, the .json beside it, "
         "must be there too); default domain/models/policy.onnx, made by `make train-policy`")
+    signalling: Literal["app", "lower"] = Field(
+        default="app", description="how the QoS reaches the network: `app`, to the camera only, as "
+        "application data over the downlink (the camera drops frames by PDP, stamps the budget on "
+        "its packets); `lower`, to the gNB as well, as a MAC-level control message, and the "
+        "scheduler weighs each UE by the urgency of its budget (docs/netsim.md)")
+    control_latency_us: int = Field(
+        default=1000, ge=0, le=100_000, description="`lower`: latency of the control message from "
+        "the Edge's policy to the gNB's scheduler (both in the gNB site), us")
 
 
 class NetsimConfig(Strict):

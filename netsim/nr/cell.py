@@ -150,6 +150,9 @@ class NrCell(Cell):
         self._gnb_sr = [False] * n
         self._ul_known: set[int] = set()  # UEs the gNB would schedule (bytes > 0 or SR)
         self._ul_prio = [1 << 30] * n  # QoS priority the gNB knows per UE (from BSR / SR)
+        # Urgency weights of the UEs' dynamic delay budgets, as signalled to the gNB (1: none).
+        self._ul_urgency = [1.0] * n
+        self._dl_urgency = [1.0] * n
         self._ue_grants = [0] * n  # new-transmission grants in the pipeline, per UE
         self._ue_grant_bytes = [0] * n
         self._sr_candidates: set[int] = set()  # UEs with a triggered BSR and no grant yet
@@ -321,12 +324,20 @@ class NrCell(Cell):
             or self._ul_known or self._sr_candidates or self._dl_active
             or any(b.bytes for b in self._ul_buf))
 
-    def set_flow_qos(self, flow: str, qos: FlowQos) -> None:
+    def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
         """Set a flow's priority and delay budget; the budget also applies to its packets
-        already queued (their discard deadline is recomputed from their enqueue time)."""
+        already queued (their discard deadline is recomputed from their enqueue time). With
+        ``ue``, the flow's urgency weighs that UE in the PF ranking of both links."""
         if qos.delay_budget_us is not None and qos.delay_budget_us <= 0:
             raise ValueError(f"flow {flow!r}: delay_budget_us={qos.delay_budget_us} must be > 0")
+        if qos.urgency <= 0:
+            raise ValueError(f"flow {flow!r}: urgency={qos.urgency} must be > 0")
         self._qos[flow] = qos
+        if ue is not None:
+            u = self._index.get(ue)
+            if u is None:
+                raise ValueError(f"flow {flow!r}: unknown UE {ue!r}")
+            self._ul_urgency[u] = self._dl_urgency[u] = qos.urgency
         for links in ((self._ul_buf, True), (self._dl_buf, False)):
             bufs, ul = links
             for u, buf in enumerate(bufs):
@@ -557,7 +568,7 @@ class NrCell(Cell):
             candidates = [u for u in self._ul_known if u not in taken and busy[u] < n_proc]
             gnb_bytes = self._gnb_ul_bytes
             extra = 8 * cfg.bsr_bytes
-            for u in self._sched_ul.order(candidates, self._ul_prio, self._rate_ul, s):
+            for u in self._sched_ul.order(candidates, self._ul_prio, self._rate_ul, s, self._ul_urgency):
                 if count >= max_ues or pos >= n_prb:
                     break
                 from_sr = gnb_bytes[u] == 0
@@ -789,7 +800,7 @@ class NrCell(Cell):
             elif u not in taken and busy[u] < n_proc:
                 candidates.append(u)
         la = self._la_dl
-        for u in self._sched_dl.order(candidates, self._dl_prio, self._rate_dl, s):
+        for u in self._sched_dl.order(candidates, self._dl_prio, self._rate_dl, s, self._dl_urgency):
             if count >= max_ues or pos >= n_prb:
                 break
             buf = self._dl_buf[u]

@@ -24,16 +24,18 @@ class Scheduler(ABC):
 
     @abstractmethod
     def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int) -> list[int]:
+              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
         """``candidates`` in service order. ``priority[u]`` is UE u's QoS priority (lower
-        first), ``rate[u]`` its achievable rate estimate (bits per PRB)."""
+        first), ``rate[u]`` its achievable rate estimate (bits per PRB), ``urgency[u]`` the
+        weight of its dynamic delay budget (None: all 1)."""
 
     def served(self, ue: int, bits: int, slot: int) -> None:  # noqa: B027 - optional hook
         """UE ``ue`` got a new transmission of ``bits`` in ``slot``."""
 
 
 class ProportionalFair(Scheduler):
-    """argmax r_u / T_u with T_u(t) = beta T_u(t-1) + (1 - beta) R_u(t).
+    """argmax w_u r_u / T_u with T_u(t) = beta T_u(t-1) + (1 - beta) R_u(t); w_u is the UE's
+    urgency (1 unless a dynamic delay budget was signalled for its flow: PF weighted by urgency).
 
     T is kept lazily: (value, slot of the value); a UE not served for k slots decays by beta^k,
     which is the recursion with R = 0 without touching every UE every slot.
@@ -50,7 +52,7 @@ class ProportionalFair(Scheduler):
         return self.avg_bits[ue] * self.beta ** max(0, slot - 1 - self.avg_slot[ue])
 
     def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int) -> list[int]:
+              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
         # Inlined loop rather than a sort key function: this runs every slot for every
         # backlogged UE and is the scheduler's whole cost.
         beta = self.beta
@@ -59,13 +61,14 @@ class ProportionalFair(Scheduler):
         keyed = []
         for u in candidates:
             t = avg[u]
+            w = 1.0 if urgency is None else urgency[u]
             if t > 1e-9:
                 k = prev - last[u]
                 if k > 0:
                     t *= beta**k
-                keyed.append((priority[u], -rate[u] / t, u))
-            else:  # never served (T = 0): first within its priority class
-                keyed.append((priority[u], -1e300, u))
+                keyed.append((priority[u], -w * rate[u] / t, u))
+            else:  # never served (T = 0): first within its priority class, the urgent first
+                keyed.append((priority[u], -1e300 * w, u))
         keyed.sort()
         return [k[2] for k in keyed]
 
@@ -82,7 +85,7 @@ class RoundRobin(Scheduler):
         self.last_served = [-1] * n_ue
 
     def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int) -> list[int]:
+              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
         last = self.last_served
         return sorted(candidates, key=lambda u: (priority[u], last[u], u))
 
@@ -94,7 +97,7 @@ class MaxRate(Scheduler):
     """The UE with the best channel goes first (maximises cell throughput, starves the edge)."""
 
     def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int) -> list[int]:
+              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
         return sorted(candidates, key=lambda u: (priority[u], -rate[u], u))
 
 

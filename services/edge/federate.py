@@ -11,8 +11,9 @@ import cv2
 
 from domain.cell_geometry import CameraIntrinsics
 from domain.codec import decode_frame, slot_after
-from domain.edge_side import CoDesign, downlink_packet, update_tracks
+from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
 from domain.estimator import Detection, make_estimator
+from domain.policy import Qos
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
 from fabric.federate import Federate
@@ -93,9 +94,15 @@ class EdgeFederate(Federate):
             message = self.codesign.signal(loop, qos, self.now)
             if message is not None:
                 self.schedule(ready, self._downlink, f"camera-{loop}", "qos", sc.edge.qos_packet_bytes, message)
+                if sc.policy.signalling == "lower":
+                    self.schedule(ready, self._lower_layer_qos, loop, qos)
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
+
+    def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
+        sc = self.scenario
+        self.send("netsim", "net", "qos_ctl", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
 
     def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
         self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),

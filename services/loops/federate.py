@@ -19,7 +19,8 @@ import numpy as np
 
 from domain.codec import slot_after, split_packets
 from domain.controller import PickController
-from domain.edge_side import CoDesign, downlink_packet, update_tracks
+from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
+from domain.policy import Qos
 from domain.scene import SERVO_LAG_S
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
@@ -175,9 +176,15 @@ class LoopsFederate(Federate):
                 _, ready = lp.edge_cpu.run("policy", self.now, int, 0)
                 self.schedule(ready, self._downlink, f"camera-{lp.index}", "qos", sc.edge.qos_packet_bytes,
                               message)
+                if sc.policy.signalling == "lower":
+                    self.schedule(ready, self._lower_layer_qos, lp.index, qos)
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
+
+    def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
+        sc = self.scenario
+        self.send("netsim", "net", "qos_ctl", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
 
     def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
         self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),

@@ -298,3 +298,43 @@ def test_stats_expose_counters(flat_config: NrConfig) -> None:
     assert st["ues"]["ue1"]["ul_delivered_bytes"] == 15_000
     assert st["ues"]["ue1"]["ul_buffer_peak_bytes"] == 15_000
     assert st["ul"]["buffer_bytes"] == 0 and st["lost_packets"][LOSS_CHANNEL] == 0
+
+
+def test_pf_weighs_equal_ues_by_the_urgency_of_their_budgets() -> None:
+    pf = ProportionalFair(2, 0.9)
+    for slot in range(10):  # equal service so far
+        for u in (0, 1):
+            pf.served(u, 10_000, slot)
+    assert pf.order([0, 1], [10, 10], [100.0, 100.0], 10, [1.0, 4.0]) == [1, 0]
+    assert pf.order([0, 1], [10, 10], [100.0, 100.0], 10, [1.0, 1.0]) == [0, 1]  # tie: UE index
+    # Strict priority still comes first: urgency ranks within a priority class.
+    assert pf.order([0, 1], [5, 10], [100.0, 100.0], 10, [1.0, 4.0]) == [0, 1]
+
+
+def test_lower_layer_qos_serves_the_urgent_flow_first_in_the_same_slot(flat_config: NrConfig) -> None:
+    """Two cameras with identical channels each queue a frame in the same slot, and the gNB may
+    grant one UE per slot. Told (lower-layer signalling) that ue1's flow has a 25 ms budget and
+    ue0's 200 ms, the scheduler grants ue1 first in the slot where both wait; without it, the UE
+    index breaks the tie and ue0 goes first."""
+    cfg = flat_config.model_copy(update={"max_ul_ues_per_slot": 1})
+
+    def first_grant(urgent: bool) -> tuple[str, dict[str, int]]:
+        cell = NrCell(cfg, GNB, ring(2), seed=1)
+        if urgent:
+            cell.set_flow_qos("ue0/video", FlowQos(delay_budget_us=200_000, urgency=0.5), ue="ue0")
+            cell.set_flow_qos("ue1/video", FlowQos(delay_budget_us=25_000, urgency=4.0), ue="ue1")
+        d = Driver(cell)
+        for ue in ("ue0", "ue1"):
+            d.send(ue, 1500, flow=f"{ue}/video", count=20)
+        first: dict[str, int] = {}
+        while len(first) < 2 and d.slot < 200:
+            d.run(1)
+            for o in d.outcomes:
+                if o.delivered:
+                    first.setdefault(o.packet.ue, o.deliver_us)
+        return min(first, key=lambda ue: (first[ue], ue)), first
+
+    winner, first = first_grant(urgent=True)
+    assert winner == "ue1" and first["ue1"] < first["ue0"], first
+    winner, first = first_grant(urgent=False)
+    assert winner == "ue0" and first["ue0"] < first["ue1"], first
