@@ -63,6 +63,10 @@ class RunResult:
     reason: str | None = None
 
 
+# How long a federate's lost liveliness waits for its runtime to report how it died.
+DEATH_REPORT_GRACE_S = 3.0
+
+
 class LivenessWatch:
     """Records federates whose liveliness token vanished while the run was going."""
 
@@ -134,6 +138,14 @@ def execute_run(
                 raise RunFailed(f"federate {name} {dead[name]}", federate=name)
             if liveness.lost:
                 name = liveness.lost[0]
+                # A dead process closes its connection at once; its runtime may take a moment
+                # to report how it died (exit code, OOM kill): the reason that names the cause.
+                grace = time.monotonic() + DEATH_REPORT_GRACE_S
+                while time.monotonic() < grace:
+                    dead = launcher.dead()
+                    if name in dead:
+                        raise RunFailed(f"federate {name} {dead[name]}", federate=name)
+                    time.sleep(0.1)
                 raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)", federate=name)
             if time.monotonic() > deadline:
                 raise RunFailed(f"run exceeded watchdog.run_timeout_s = {scenario.watchdog.run_timeout_s} s",
