@@ -2,8 +2,8 @@
 
 ``tests/reference/fidelity.json`` holds the KPIs of the smoke scenario and of a 16-loop
 ``co_design`` scenario (one detailed loop) recorded with ``model`` compute timing before the speed
-work; rerunning them must place the same tasks (+-1) with packet latency p50/p99 and uplink
-throughput within 2%.
+work (``co_design`` again when its policy changed: ``recorded_from`` says which commit); rerunning
+them must place the same tasks (+-1) with packet latency p50/p99 and uplink throughput within 2%.
 """
 
 from __future__ import annotations
