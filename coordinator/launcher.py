@@ -67,6 +67,11 @@ class Launcher(ABC):
     def last_log_lines(self, name: str, n: int = 20) -> list[str]:
         """The last ``n`` lines a federate wrote to its log."""
 
+    def resource_note(self, name: str) -> str | None:
+        """What the runtime sees of a failed federate's resources that explains its failure
+        (e.g. a node stuck at its memory limit), or None."""
+        return None
+
     @abstractmethod
     def stop(self, grace_s: float = 5.0) -> None:
         """Stop every federate (terminate, then kill after ``grace_s``) and release resources.

@@ -163,6 +163,9 @@ def execute_run(
         status, reason, failed_federate = exc.status, exc.reason, exc.federate
         if failed_federate:
             log_tail = launcher.last_log_lines(failed_federate, 20)
+            note = launcher.resource_note(failed_federate)
+            if note and note not in reason:
+                reason = f"{reason}; {failed_federate} {note}"
         windows = conductor.windows if conductor else 0
         sim_us = conductor.t_us if conductor else 0
     except Exception as exc:  # a coordinator bug must still end the run cleanly

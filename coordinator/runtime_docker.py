@@ -70,6 +70,8 @@ ATTACH_RUN_NETWORKS = "run-networks"
 LABEL_ALIAS = "cosim5g.alias"
 
 CFS_PERIOD_US = 10_000
+# A node using this share of its memory limit when it fails is taken to have run out of memory.
+MEMORY_FULL = 0.95
 # The kernel refuses a CFS quota below 1 ms: at a 10 ms period the smallest node is 0.1 cpus.
 CFS_MIN_QUOTA_US = 1_000
 # The image's unprivileged user (images/runtime.Dockerfile).
@@ -556,6 +558,22 @@ class DockerLauncher(Launcher):
                 except NotFound:
                     self._dead[name] = "container removed outside cosim5g"
         return dict(self._dead)
+
+    def resource_note(self, name: str) -> str | None:
+        """A node that hangs rather than dies at its memory limit (the kernel reclaiming its last
+        pages instead of killing it) is named as out of memory."""
+        c = self._containers.get(name)
+        limits = self._limits.get(name)
+        if c is None or limits is None or limits.mem_mb is None:
+            return None
+        try:
+            mem = c.stats(stream=False).get("memory_stats") or {}
+        except (APIError, DockerException):
+            return None
+        usage, limit = mem.get("usage"), mem.get("limit")
+        if not usage or not limit or usage < MEMORY_FULL * limit:
+            return None
+        return f"at its memory limit of {limits.mem_mb} MiB ({usage / 2**20:.0f} MiB used): out of memory"
 
     def last_log_lines(self, name: str, n: int = 20) -> list[str]:
         if name not in self._containers:
