@@ -41,6 +41,10 @@ class PhysicsFederate(Federate):
                 self.schedule(at, self._spawn, i, part)
             self.schedule(frame_offset_us(i, sc.loops, self.frame_period, self.step_us), self._frame, i)
         self.schedule(0, self._publish_states)
+        if self.detailed:
+            # The renderer (GL context, shader compilation) is made before the run starts: on a
+            # loaded host its first frame takes seconds, which the first window would spend.
+            self.world.render(self.detailed[0], sc.camera.width_px, sc.camera.height_px)
 
     # ---- events -------------------------------------------------------------------------------
     def _spawn(self, cell: int, part: dict[str, float]) -> None:
