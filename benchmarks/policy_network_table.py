@@ -33,7 +33,6 @@ import json
 import math
 import sys
 import time
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +43,7 @@ if str(ROOT) not in sys.path:  # runnable from a checkout without installing
 import numpy as np  # noqa: E402
 
 from domain.codec import slot_after, split_packets  # noqa: E402
+from domain.frame_model import load_frame_model  # noqa: E402
 from fabric.seeding import rng as named_rng  # noqa: E402
 from netsim.cell import FlowQos, Packet  # noqa: E402
 from netsim.nr.cell import NrCell  # noqa: E402
@@ -60,13 +60,8 @@ POSE_BYTES = 120
 POSE_COMPUTE_US = 4_000  # Edge pose job between a frame's arrival and its pose packet
 
 
-def frame_model() -> dict[str, Any]:
-    return json.loads(resources.files("domain").joinpath("data/frame_model.json").read_text())
-
-
-def loop_rate_mbps(model: dict[str, Any]) -> float:
+def loop_rate_mbps(sizes: np.ndarray) -> float:
     """Uplink IP rate of one camera at PDP 1 (payload + per-packet headers), Mbit/s."""
-    sizes = np.asarray(model["frame_bytes"])
     ip = np.mean([sum(split_packets(int(s), MTU)) for s in sizes])
     return float(ip * 8 * FPS / 1e6)
 
@@ -196,9 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=2, help="runs per point (seeds 1..N)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
-    model = frame_model()
-    sizes = np.asarray(model["frame_bytes"], dtype=np.int64)
-    rate = loop_rate_mbps(model)
+    sizes = load_frame_model().frame_bytes
+    rate = loop_rate_mbps(sizes)
     t0 = time.time()
     points = []
     for budget in BUDGETS_MS:

@@ -3,8 +3,9 @@
 Each window it publishes ``advance(t_end, expected_in)`` to the federates that have something
 to do in it (an event before its end, or messages sent to them since they last took part), waits
 until each of them replied ``done``, adds up what each federate sent to each other one (the next
-window's ``expected_in``) and picks the next window: the one after, or -- when every federate's next event and every
-message in flight lies later -- straight the window holding the earliest of them (idle jump).
+window's ``expected_in``) and picks the next window: the one after, or -- when every federate's
+next event and every message in flight lies later -- straight the window holding the earliest of
+them (idle jump).
 While waiting it polls a health check so that a dead or silent federate fails the run at once.
 
 The conductor declares the coordinator's liveliness token on its bus: the federates leave when
@@ -117,7 +118,7 @@ class Conductor:
             expected = {f: sum(s.get(f, 0) for s in sent.values()) for f in self.federates}
             active = [f for f in self.federates
                       if f not in seen_in or expected[f] > seen_in[f]
-                      or (next_event[f] is not None and next_event[f] < t_end)]  # type: ignore[operator]
+                      or ((nxt := next_event[f]) is not None and nxt < t_end)]
             adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected,
                           federates=None if len(active) == len(self.federates) else active)
             self._trace.update(f"{self.windows}:{t_start}:{t_end};".encode())

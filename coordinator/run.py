@@ -67,6 +67,18 @@ class RunResult:
 DEATH_REPORT_GRACE_S = 3.0
 
 
+def _death_report(launcher: Launcher, name: str) -> dict[str, str]:
+    """The runtime's dead federates once it reports ``name`` among them, or {} after
+    ``DEATH_REPORT_GRACE_S``."""
+    grace = time.monotonic() + DEATH_REPORT_GRACE_S
+    while time.monotonic() < grace:
+        dead = launcher.dead()
+        if name in dead:
+            return dead
+        time.sleep(0.1)
+    return {}
+
+
 class LivenessWatch:
     """Records federates whose liveliness token vanished while the run was going."""
 
@@ -133,20 +145,17 @@ def execute_run(
             if cancel is not None and cancel.is_set():
                 raise RunFailed("cancelled by the user", status="cancelled")
             dead = launcher.dead()
+            if not dead and liveness.lost:
+                # A dead process closes its connection at once; its runtime may take a moment
+                # to report how it died (exit code, OOM kill): the reason that names the cause.
+                name = liveness.lost[0]
+                dead = _death_report(launcher, name)
+                if not dead:
+                    raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)",
+                                    federate=name)
             if dead:
                 name = sorted(dead)[0]
                 raise RunFailed(f"federate {name} {dead[name]}", federate=name)
-            if liveness.lost:
-                name = liveness.lost[0]
-                # A dead process closes its connection at once; its runtime may take a moment
-                # to report how it died (exit code, OOM kill): the reason that names the cause.
-                grace = time.monotonic() + DEATH_REPORT_GRACE_S
-                while time.monotonic() < grace:
-                    dead = launcher.dead()
-                    if name in dead:
-                        raise RunFailed(f"federate {name} {dead[name]}", federate=name)
-                    time.sleep(0.1)
-                raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)", federate=name)
             if time.monotonic() > deadline:
                 raise RunFailed(f"run exceeded watchdog.run_timeout_s = {scenario.watchdog.run_timeout_s} s",
                                 status="timed_out")
@@ -188,12 +197,7 @@ def execute_run(
         status, reason = "failed", f"no final report from {', '.join(missing)}"
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
-    recorded: dict[str, Any] = {"sim_time_reached_s": sim_s}
-    try:
-        recorded.update(recorded_summary(merge_tables(run_dir)))
-    except Exception as exc:
-        log.exception("run %s: merging the tables failed", run_id)
-        recorded["error"] = f"{type(exc).__name__}: {exc}"
+    recorded = close_records(run_dir, sim_s)
     try:
         kpis = compute_kpis(run_dir, sim_s, scenario.loops)
     except Exception as exc:  # tables of a failed run may be missing or partial
@@ -236,6 +240,23 @@ def execute_run(
     return RunResult(run_id, status, run_dir, kpis, reason)
 
 
+def close_records(run_dir: Path, sim_time_reached_s: float | None = None) -> dict[str, Any]:
+    """Merge what the federates streamed into the run tables; ``kpis.json``'s ``recorded``: rows
+    per table and part, and how far the run got (given, or where every federate's records reach).
+    A merge that fails is logged and said, so that the rest of the run's results are still written."""
+    try:
+        merged = merge_tables(run_dir)
+    except Exception as exc:  # partial or unreadable parts
+        log.exception("%s: merging the tables failed", run_dir)
+        return {"sim_time_reached_s": sim_time_reached_s or 0.0, "error": f"{type(exc).__name__}: {exc}"}
+    recorded = recorded_summary(merged)
+    if sim_time_reached_s is None:
+        reached = [info["upto_s"] for m in merged.values() for info in m["parts"].values()
+                   if info.get("upto_s") is not None]
+        sim_time_reached_s = min(reached) if reached else 0.0
+    return {"sim_time_reached_s": sim_time_reached_s, **recorded}
+
+
 def salvage_run(run_dir: Path, reason: str) -> dict[str, Any] | None:
     """Close the records of a run whose coordinator died before it ended: merge what every
     federate streamed (``tables/`` parts) into the run tables and write ``kpis.json`` with status
@@ -249,16 +270,7 @@ def salvage_run(run_dir: Path, reason: str) -> dict[str, Any] | None:
         status = json.loads((run_dir / "status.json").read_text())
     except (OSError, ValueError):
         pass
-    recorded: dict[str, Any] = {}
-    try:
-        merged = merge_tables(run_dir)
-        recorded = recorded_summary(merged)
-        # Every federate's records reach at least this far: the run's simulated time, safely.
-        reached = [info["upto_s"] for m in merged.values() for info in m["parts"].values()
-                   if info.get("upto_s") is not None]
-        recorded["sim_time_reached_s"] = min(reached) if reached else 0.0
-    except Exception as exc:  # partial or unreadable parts: say so, keep the rest
-        recorded["error"] = f"{type(exc).__name__}: {exc}"
+    recorded = close_records(run_dir)
     kpis = {"run_id": status.get("run_id", run_dir.name), "status": "failed", "reason": reason,
             "seed": status.get("seed"), "recorded": recorded, "results_dir": str(run_dir)}
     write_json(run_dir / "kpis.json", kpis)

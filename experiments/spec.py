@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from scenario.schema import Scenario, ScenarioError, load_scenario
+from scenario.schema import Scenario, ScenarioError, load_scenario, shipped_names
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
 
@@ -158,7 +158,7 @@ def field_exists(path: str) -> str | None:
 
 def base_path(base: str, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> Path:
     """The base scenario's file: a shipped name, or (from the CLI only) a path."""
-    known = sorted(p.stem for p in scenarios_dir.glob("*.yaml"))
+    known = shipped_names(scenarios_dir)
     if base in known:  # a name from the list, never a path built from the request
         return scenarios_dir / f"{base}.yaml"
     if allow_paths and Path(base).is_file():

@@ -55,6 +55,12 @@ DEFAULT_JOB_MODELS = {
 }
 
 
+def draw_model_us(dist: JobModel, rng: np.random.Generator) -> int:
+    """A job's duration in ``model`` timing: a normal draw, truncated at a tenth of the mean."""
+    draw = rng.normal(dist.mean_us, dist.sd_us) if dist.sd_us else dist.mean_us
+    return max(1, int(round(max(draw, dist.mean_us * 0.1))))
+
+
 # ``wall`` timing: the shortest job, in CFS periods of the node's cgroup, whose wall time says
 # something about the node's speed. A job of ideal duration d under a quota of cpus x P per
 # period P finishes up to (1 - cpus) x P early (it may run out its quota at full speed and never be
@@ -317,9 +323,10 @@ class ComputeNode:
         self._free_at = [0] * self.cores
         self._series: dict[str, tuple[Any, ...]] = {}
         self._rng = rng
-        self._cgroup_visible = read_throttled_ns() is not None
         self.records: list[JobRecord] = []
         self.measured = profile.timing != "model"
+        # Throttling only matters to a job whose duration is measured: a drawn one never reads it.
+        self._cgroup_visible = self.measured and read_throttled_ns() is not None
         self.scale = 1.0
         self.quota: CpuQuota | None = None
         self.probes: list[tuple[int, float]] = []
@@ -346,8 +353,7 @@ class ComputeNode:
             self.quota = self._wall_quota()
         core = min(range(self.cores), key=lambda c: self._free_at[c])
         start = max(arrival_us, self._free_at[core])
-        # Throttling only matters to a job whose duration is measured; a drawn one skips the read.
-        throttled0 = read_throttled_ns() if self._cgroup_visible and self.measured else None
+        throttled0 = read_throttled_ns() if self._cgroup_visible else None
         if self.measured:
             token = self._clock.start()
             wall0 = time.perf_counter_ns()
@@ -401,8 +407,7 @@ class ComputeNode:
                     f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
                     f"(has: {sorted(self.profile.model_us)})"
                 )
-            draw = self._rng.normal(dist.mean_us, dist.sd_us) if dist.sd_us else dist.mean_us
-            return max(1, int(round(max(draw, dist.mean_us * 0.1))))
+            return draw_model_us(dist, self._rng)
         ideal_us = self.cpu_duration_us(cpu)
         if mode == "wall":
             assert self.quota is not None

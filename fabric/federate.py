@@ -126,6 +126,8 @@ class Federate:
         # instead of one per packet. The receiver counts and orders the batch's messages singly.
         self._outbox: dict[str, list[bytes]] = {}
         self._sent_by_plane: Counter[str] = Counter()
+        # Metric series looked up once: a label lookup costs more than the update, every window.
+        self._sent_series: dict[str, Any] = {}
         self._window_series = metrics.WINDOWS.labels(self.name)
         self._event_series = metrics.EVENTS.labels(self.name)
         self._out_seq = 0
@@ -265,7 +267,10 @@ class Federate:
             self.bus.publish(key, encode_batch(raws))
         self._outbox.clear()
         for plane, n in self._sent_by_plane.items():
-            metrics.MESSAGES_SENT.labels(self.name, plane).inc(n)
+            series = self._sent_series.get(plane)
+            if series is None:
+                series = self._sent_series[plane] = metrics.MESSAGES_SENT.labels(self.name, plane)
+            series.inc(n)
         self._sent_by_plane.clear()
 
     # ---- protocol -----------------------------------------------------------------------------

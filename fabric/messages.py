@@ -48,8 +48,17 @@ class Message:
     @classmethod
     def decode(cls, raw: bytes) -> Message:
         try:
-            v, t_us, src, dst, seq, plane, kind, body, blob, window = msgpack.unpackb(raw, raw=False)
+            fields = msgpack.unpackb(raw, raw=False)
         except Exception as exc:  # malformed bytes from the wire
+            raise MessageError(f"undecodable data message: {exc}") from exc
+        return cls.from_fields(fields)
+
+    @classmethod
+    def from_fields(cls, fields: Any) -> Message:
+        """The message of an unpacked envelope (the array ``encode`` packs)."""
+        try:
+            v, t_us, src, dst, seq, plane, kind, body, blob, window = fields
+        except (TypeError, ValueError) as exc:
             raise MessageError(f"undecodable data message: {exc}") from exc
         if v != SCHEMA_VERSION:
             raise MessageError(f"data message schema v{v}, this build speaks v{SCHEMA_VERSION}")
@@ -80,7 +89,7 @@ def decode_data(payload: bytes) -> list[Message]:
         if not isinstance(head[1], list) or not all(isinstance(r, bytes) for r in head[1]):
             raise MessageError("data batch must hold encoded messages")
         return [Message.decode(raw) for raw in head[1]]
-    return [Message.decode(payload)]
+    return [Message.from_fields(head)]  # a single message, unpacked once (a frame's blob is large)
 
 
 class ControlRecord(BaseModel):

@@ -38,7 +38,7 @@ from experiments.spec import SweepError, SweepSpec, base_path, overrides
 from interfaces.api_sweeps import add_sweep_routes
 from interfaces.auth import token_matches
 from interfaces.store import ORPHAN_REASON, RunStore
-from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario
+from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario, shipped_names
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ class Coordinator:
 
     def submit(self, req: RunRequest) -> dict[str, Any]:
         if req.scenario is not None:
-            known = sorted(p.stem for p in self.scenarios_dir.glob("*.yaml"))
+            known = shipped_names(self.scenarios_dir)
             if req.scenario not in known:  # checked against the list: a name never becomes a path
                 raise ScenarioError([("scenario", f"{req.scenario!r} is not one of {known}")])
             sc = load_scenario(self.scenarios_dir / f"{req.scenario}.yaml",
@@ -388,7 +388,7 @@ def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_ro
 
     @app.get("/scenarios")
     def scenarios() -> list[str]:
-        return sorted(p.stem for p in scenarios_dir.glob("*.yaml"))
+        return shipped_names(scenarios_dir)
 
     @app.post("/runs", status_code=201)
     def start_run(req: RunRequest) -> dict[str, Any]:

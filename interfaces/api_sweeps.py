@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from experiments.service import SweepService
 from experiments.spec import SweepError, SweepSpec, parse_spec
 from interfaces.pages import index_page, sweep_page
+from scenario.schema import shipped_names
 
 SWEEPS_ACTIVE = Gauge("cosim_coordinator_sweeps_active", "Sweeps pending or running")
 SWEEP_POINTS = Counter("cosim_coordinator_sweep_points_total", "Sweep points finished, by state", ["state"])
@@ -39,13 +40,9 @@ class SweepRequest(BaseModel):
     spec: str | dict[str, Any] = Field(description="name of a file in configs/sweeps/, or the spec itself")
 
 
-def shipped_specs(sweeps_dir: Path) -> list[str]:
-    return sorted(p.stem for p in sweeps_dir.glob("*.yaml"))
-
-
 def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path) -> SweepSpec:
     if isinstance(req.spec, str):
-        known = shipped_specs(sweeps_dir)
+        known = shipped_names(sweeps_dir)
         if req.spec not in known:  # checked against the list: a name never becomes a path
             raise SweepError([("spec", f"{req.spec!r} is not one of {known}")])
         data = yaml.safe_load((sweeps_dir / f"{req.spec}.yaml").read_text())
@@ -85,7 +82,7 @@ def add_sweep_routes(app: FastAPI, service: SweepService, sweeps_dir: Path, scen
 
     @app.get("/sweeps/specs")
     def sweep_specs() -> list[str]:
-        return shipped_specs(sweeps_dir)
+        return shipped_names(sweeps_dir)
 
     @app.post("/sweeps", status_code=201)
     def start_sweep(req: SweepRequest) -> dict[str, Any]:

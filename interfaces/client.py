@@ -13,6 +13,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from typing import Any
 
 from interfaces.auth import DEFAULT_TOKEN_FILE, TOKEN_ENV, TOKEN_FILE_ENV, client_token
@@ -91,35 +92,40 @@ def wait_healthy(base: str, timeout_s: float) -> None:
     raise ApiError(f"coordinator not healthy within {timeout_s:.0f} s ({last})")
 
 
+def _follow(base: str, path: str, state_key: str, line: Callable[[dict[str, Any]], str], stream: Any,
+            poll_s: float, token: str | None) -> dict[str, Any]:
+    """Poll ``path`` until its ``state_key`` leaves pending/running, showing ``line`` of it."""
+    while True:
+        rec = call(base, "GET", path, token=token)
+        if rec[state_key] not in ("pending", "running"):
+            stream.write("\n")
+            return dict(rec)
+        stream.write("\r" + line(rec))
+        stream.flush()
+        time.sleep(poll_s)
+
+
 def follow(base: str, run_id: str, stream: Any = sys.stderr, poll_s: float = 1.0,
            token: str | None = None) -> dict[str, Any]:
     """Poll a run until it ends, showing simulated time and real-time factor; the run record."""
-    while True:
-        run = call(base, "GET", f"/runs/{run_id}", token=token)
-        if run["status"] not in ("pending", "running"):
-            stream.write("\n")
-            return dict(run)
+    def line(run: dict[str, Any]) -> str:
         sim = run.get("sim_time_s") or 0.0
         total = run["config"]["duration_s"]
         rtf = run.get("real_time_factor") or 0.0
-        stream.write(f"\r{run_id}: {run['status']:<8} sim {sim:7.2f}/{total:.2f} s  rtf {rtf:5.2f}")
-        stream.flush()
-        time.sleep(poll_s)
+        return f"{run_id}: {run['status']:<8} sim {sim:7.2f}/{total:.2f} s  rtf {rtf:5.2f}"
+
+    return _follow(base, f"/runs/{run_id}", "status", line, stream, poll_s, token)
 
 
 def follow_sweep(base: str, sweep_id: str, stream: Any = sys.stderr, poll_s: float = 2.0,
                  token: str | None = None) -> dict[str, Any]:
     """Poll a sweep until it ends, showing points done / total and the points running; the sweep."""
-    while True:
-        s = call(base, "GET", f"/sweeps/{sweep_id}", token=token)
-        if s["state"] not in ("pending", "running"):
-            stream.write("\n")
-            return dict(s)
+    def line(s: dict[str, Any]) -> str:
         prog = s["progress"]
         running = ", ".join(" ".join(f"{k}={v}" for k, v in p["values"].items()) + f" sim {p.get('sim_time_s') or 0:.1f} s"
                             for p in s["points"] if p["state"] == "running")
         eta = f"ETA {prog['eta_s'] / 60:.1f} min" if prog.get("eta_s") is not None else ""
-        stream.write(f"\r{sweep_id}: {s['state']:<8} {prog['points_done']}/{prog['points_total']} points "
-                     f"{running} {eta}\x1b[K")
-        stream.flush()
-        time.sleep(poll_s)
+        return (f"{sweep_id}: {s['state']:<8} {prog['points_done']}/{prog['points_total']} points "
+                f"{running} {eta}\x1b[K")
+
+    return _follow(base, f"/sweeps/{sweep_id}", "state", line, stream, poll_s, token)

@@ -410,6 +410,12 @@ def parse_scenario(data: Any, overrides: list[str] | None = None) -> Scenario:
         raise ScenarioError(_format_validation(exc)) from None
 
 
+def shipped_names(directory: Path) -> list[str]:
+    """The names of the YAML files in ``directory`` (shipped scenarios or sweep specs): the only
+    names a request may use, so that a name from a request never becomes a path."""
+    return sorted(p.stem for p in directory.glob("*.yaml"))
+
+
 def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:
     """Load a YAML scenario file, apply overrides, validate."""
     p = Path(path)

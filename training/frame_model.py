@@ -21,11 +21,12 @@ import numpy as np
 
 from domain.codec import decode_frame
 from domain.estimator import make_estimator
+from domain.frame_model import PATH as FRAME_MODEL_PATH
 from scenario.schema import Scenario, parse_scenario
 from training.perception.dataset import render_frames
 from training.perception.evaluate import evaluate
 
-DEFAULT_OUT = Path(__file__).parents[1] / "domain" / "data" / "frame_model.json"
+DEFAULT_OUT = FRAME_MODEL_PATH
 
 
 def measure(sc: Scenario, estimator: str) -> dict[str, Any]:

@@ -10,9 +10,7 @@ same co-design policy sets its PDP. Compute times come from the node profiles' `
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from importlib import resources
 from typing import Any
 
 import numpy as np
@@ -20,6 +18,7 @@ import numpy as np
 from domain.codec import slot_after, split_packets
 from domain.controller import PickController
 from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
+from domain.frame_model import load_frame_model
 from domain.policy import Qos
 from domain.scene import SERVO_LAG_S
 from domain.tracker import Tracker
@@ -27,12 +26,6 @@ from fabric.compute import ComputeNode
 from fabric.federate import Federate
 from fabric.messages import Message
 from fabric.tables import write_table
-
-
-def load_frame_model() -> dict[str, Any]:
-    """The measured frame sizes and estimator error (``python -m training.frame_model``)."""
-    text = resources.files("domain").joinpath("data/frame_model.json").read_text()
-    return json.loads(text)
 
 
 @dataclass
@@ -62,10 +55,7 @@ class LoopsFederate(Federate):
 
     def setup(self) -> None:
         sc = self.scenario
-        model = load_frame_model()
-        self.sizes = np.asarray(model["frame_bytes"], dtype=np.int64)
-        self.error_sd = float(model["estimator_error_sd_m"])
-        self.miss_rate = float(model["estimator_miss_rate"])
+        self.frame_model = load_frame_model()
         self.codesign = CoDesign.for_scenario(sc)
         nodes = sc.nodes
 
@@ -116,7 +106,7 @@ class LoopsFederate(Federate):
         lp.frames_kept += 1
         fid = lp.frame_id
         lp.frame_id += 1
-        size = int(lp.size_rng.choice(self.sizes))
+        size = int(lp.size_rng.choice(self.frame_model.frame_bytes))
         _, ready = lp.camera_cpu.run("compress", self.now, int, size)
         lp.truth[fid] = (capture_us, objects)
         self.schedule(ready, self._transmit, lp.index, fid, size)
@@ -144,18 +134,9 @@ class LoopsFederate(Federate):
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
             lp.arrived.pop(old, None)
-        positions = self._estimate(lp, objects)
+        positions = self.frame_model.estimate(objects, lp.error_rng)
         _, ready = lp.edge_cpu.run("pose", self.now, int, 0)
         self.schedule(ready, self._publish, lp.index, capture_us, positions)
-
-    def _estimate(self, lp: AbstractLoop, objects: list[dict]) -> list[np.ndarray]:
-        """Ground truth at capture plus the real estimator's measured error."""
-        out = []
-        for obj in objects:
-            if lp.error_rng.random() < self.miss_rate:
-                continue
-            out.append(np.asarray(obj["p"]) + lp.error_rng.normal(0.0, self.error_sd, 3))
-        return out
 
     def _publish(self, loop: int, capture_us: int, positions: list[np.ndarray]) -> None:
         lp = self.loops[loop]

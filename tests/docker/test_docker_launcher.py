@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from coordinator.launcher import FederateSpec, NodeLimits
+from coordinator.run import free_port
 from coordinator.runtime_docker import (
     LABEL_RUN,
     DockerLauncher,
@@ -200,9 +201,7 @@ def test_federate_reaches_router_on_host(launcher: DockerLauncher, run_id: str,
     zenoh = pytest.importorskip("zenoh")
     from fabric.zenoh_bus import session_config
 
-    with socket.socket() as s:  # a free port on the host
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # on the host
     router = zenoh.open(session_config("router", launcher.router_listen_endpoint(port)))
     got: list[bytes] = []
     key = f"cosim/{run_id}/ctl/hello"

@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -15,6 +14,8 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+
+from coordinator.run import free_port
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -110,12 +111,6 @@ def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path:
     assert rebuilt.returncode == 0, rebuilt.stderr
     assert (sweep_dir / "report.md").read_text() == report
     assert all((sweep_dir / f"{stem}.png").is_file() for stem in FIGURES)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture

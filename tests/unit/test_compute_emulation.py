@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import statistics
 import threading
 import time
@@ -21,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
+from coordinator.run import free_port
 from fabric import compute, host_speed
 from fabric.compute import (
     ComputeNode,
@@ -73,20 +73,18 @@ class FakeClock:
 # ---- a job's CPU time is its own ------------------------------------------------------------
 
 @contextmanager
-def burning_python_thread() -> Iterator[Callable[[bool], None]]:
-    """Another thread of this process compressing data (zlib releases the GIL: the thread burns
-    a core in parallel with the job, as zenoh's receive threads do)."""
+def switchable(work: Callable[[], object]) -> Iterator[Callable[[bool], None]]:
+    """A thread of this process doing ``work`` over and over while switched on."""
     on, stop = threading.Event(), threading.Event()
-    data = np.random.default_rng(0).integers(0, 64, 1 << 18, dtype=np.uint8).tobytes()
 
-    def burn() -> None:
+    def loop() -> None:
         while not stop.is_set():
             if on.is_set():
-                zlib.compress(data, 6)
+                work()
             else:
                 time.sleep(0.0005)
 
-    t = threading.Thread(target=burn, daemon=True)
+    t = threading.Thread(target=loop, daemon=True)
     t.start()
     try:
         yield lambda active: on.set() if active else on.clear()
@@ -95,10 +93,13 @@ def burning_python_thread() -> Iterator[Callable[[bool], None]]:
         t.join()
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+@contextmanager
+def burning_python_thread() -> Iterator[Callable[[bool], None]]:
+    """Another thread of this process compressing data (zlib releases the GIL: the thread burns
+    a core in parallel with the job, as zenoh's receive threads do)."""
+    data = np.random.default_rng(0).integers(0, 64, 1 << 18, dtype=np.uint8).tobytes()
+    with switchable(lambda: zlib.compress(data, 6)) as set_load:
+        yield set_load
 
 
 @contextmanager
@@ -110,23 +111,11 @@ def zenoh_traffic() -> Iterator[Callable[[bool], None]]:
     client = ZenohBus(f"tcp/127.0.0.1:{port}", mode="client")
     received = [0]
     client.subscribe("cosim/test/flood", lambda key, payload: received.__setitem__(0, received[0] + 1))
-    on, stop = threading.Event(), threading.Event()
     payload = bytes(65_536)
-
-    def flood() -> None:
-        while not stop.is_set():
-            if on.is_set():
-                router.publish("cosim/test/flood", payload)
-            else:
-                time.sleep(0.0005)
-
-    t = threading.Thread(target=flood, daemon=True)
-    t.start()
     try:
-        yield lambda active: on.set() if active else on.clear()
+        with switchable(lambda: router.publish("cosim/test/flood", payload)) as set_load:
+            yield set_load
     finally:
-        stop.set()
-        t.join()
         client.close()
         router.close()
     assert received[0] > 0

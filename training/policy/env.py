@@ -29,8 +29,6 @@ so lambda is what one task is worth in seconds of full-rate camera traffic. An e
 from __future__ import annotations
 
 import heapq
-import json
-from importlib import resources
 from typing import Any
 
 import gymnasium as gym
@@ -41,11 +39,12 @@ from domain.arm import SERVO_LAG_S
 from domain.codec import slot_after
 from domain.controller import PickController
 from domain.edge_side import CoDesign, update_tracks
+from domain.frame_model import load_frame_model
 from domain.policy import LoopState, Qos
 from domain.policy_features import BUDGET_LEVELS_MS, N_FEATURES, OBS_LIMIT, PDP_LEVELS, features
 from domain.tracker import Tracker
 from domain.world import World, spawn_plan
-from fabric.compute import DEFAULT_JOB_MODELS
+from fabric.compute import DEFAULT_JOB_MODELS, draw_model_us
 from fabric.seeding import rng
 from scenario.schema import CellConfig, PolicyConfig, Scenario
 from training.policy.cells import DEFAULT_FAMILY, CellFamily
@@ -56,10 +55,6 @@ DEFAULT_LAMBDA = 10.0
 EPISODE_S = 30.0
 LOAD_TAU_S = 5.0  # averaging time of the mean-field PDP
 SLOT_US = 1000  # NR slot at 15 kHz: packets enter the UE buffer at slot boundaries
-
-
-def load_frame_model() -> dict[str, Any]:
-    return json.loads(resources.files("domain").joinpath("data/frame_model.json").read_text())
 
 
 def action_qos(action: Any) -> Qos:
@@ -83,9 +78,7 @@ class PickLoopEnv(gym.Env):
         self.fixed_cell = cell
         self.fixed_loops = loops
         self.net = network or NetworkModel()
-        fm = load_frame_model()
-        self.error_sd = float(fm["estimator_error_sd_m"])
-        self.miss_rate = float(fm["estimator_miss_rate"])
+        self.frame_model = load_frame_model()
         self.observation_space = spaces.Box(-OBS_LIMIT, OBS_LIMIT, (N_FEATURES,), np.float32)
         self.action_space = spaces.MultiDiscrete([len(PDP_LEVELS), len(BUDGET_LEVELS_MS)])
         self.sc: Scenario | None = None
@@ -195,9 +188,7 @@ class PickLoopEnv(gym.Env):
 
     def _job_us(self, kind: str) -> int:
         """A job's duration on its node: the platform's modelled distribution (``model`` timing)."""
-        d = DEFAULT_JOB_MODELS[kind]
-        draw = self.rng["compute"].normal(d.mean_us, d.sd_us) if d.sd_us else d.mean_us
-        return max(1, int(round(max(draw, d.mean_us * 0.1))))
+        return draw_model_us(DEFAULT_JOB_MODELS[kind], self.rng["compute"])
 
     def _run_until(self, t_end: int) -> None:
         assert self.sc is not None
@@ -249,12 +240,7 @@ class PickLoopEnv(gym.Env):
         if latency is None:
             return
         self.stats["frames_delivered"] += 1
-        err = self.rng["error"]
-        positions = []
-        for obj in self.world.objects(0):
-            if err.random() < self.miss_rate:
-                continue
-            positions.append(np.asarray(obj["p"]) + err.normal(0.0, self.error_sd, 3))
+        positions = self.frame_model.estimate(self.world.objects(0), self.rng["error"])
         self._push(enter + latency + self._job_us("pose"), 2, "edge", (t, positions))
 
 
