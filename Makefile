@@ -20,7 +20,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
-	reproduce reproduce-quick soak chaos \
+	reproduce reproduce-quick reproduce-codesign soak chaos \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
@@ -78,6 +78,10 @@ reproduce: $(BIN)/cosim5g ## the study's sweep (loops 2..36 x none/heuristic x 3
 
 reproduce-quick: $(BIN)/cosim5g ## the same, short: loops 4..36 step 4, one seed, 15 s points (results/sweeps/)
 	$(BIN)/cosim5g sweep configs/sweeps/quick.yaml --jobs $(JOBS)
+
+reproduce-codesign: $(BIN)/cosim5g ## where co-design's capacity comes from: none/heuristic/learned (app, lower) + ablations, default cell and 3 family cells
+	$(BIN)/cosim5g sweep configs/sweeps/codesign.yaml --jobs $(JOBS)
+	$(BIN)/cosim5g sweep configs/sweeps/codesign_family.yaml --jobs $(JOBS)
 
 images: setup $(BIN)/cosim5g ## build the runtime and Prometheus images without a registry (see docs/docker.md)
 	PYTHON=$(PYTHON) bash images/build.sh

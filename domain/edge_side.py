@@ -42,6 +42,7 @@ class CoDesign:
     def __init__(self, cfg: PolicyConfig, cell: CellConfig | float, loops: int = 1,
                  fps: float = 30.0) -> None:
         self.policy = make_policy(cfg)
+        self.controls = cfg.controls  # an ablation may apply only part of the policy's QoS
         self.object_period_s: float | None = None
         if isinstance(cell, CellConfig):
             self.belt_speed_m_s, self.object_period_s = cell.belt_speed_m_s, cell.object_period_s
@@ -72,6 +73,10 @@ class CoDesign:
     def decide(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> Qos:
         """The policy's QoS for ``loop`` from what the Edge knows of it now."""
         qos = self.policy.decide(self.state(loop, now_us, tracker, last_frame_us))
+        if self.controls == "pdp":
+            qos = Qos(qos.pdp, None)
+        elif self.controls == "budget":
+            qos = Qos(1.0, qos.pdb_us)
         metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
         return qos
 

@@ -114,7 +114,8 @@ def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Fi
         a.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "25" else ""))
     tail.set_title("Tail")
     tail.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="lower right")
+    if ax.lines:  # a sweep whose runs kept no packets draws empty axes
+        ax.legend(fontsize=7, loc="lower right")
     return fig
 
 

@@ -45,7 +45,7 @@ def point_key(scenario: Scenario) -> str:
 
 
 def make_point(spec: SweepSpec, base: Path, values: dict[str, Any], seed: int) -> Point:
-    sc = load_scenario(base, [*overrides(spec.set), *overrides(values), f"seed={seed}"])
+    sc = load_scenario(base, [*overrides(spec.set), *overrides(spec.fields(values)), f"seed={seed}"])
     return Point(values=values, seed=seed, scenario=sc)
 
 

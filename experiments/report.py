@@ -123,6 +123,13 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
     done = sum(1 for p in points if p["status"] == "completed")
     lines += [f"Runs: {len(points)} ({done} completed). State: {meta.get('state', '-')}. "
               f"Wall time: {_f(meta.get('wall_s'))} s.", ""]
+    if spec.variants:
+        lines += ["Variants: " + "; ".join(f"`{name}` = " + ", ".join(f"{k}={v}" for k, v in fields.items())
+                                           for name, fields in spec.variants.items()) + ".", ""]
+    if meta.get("passed_over"):
+        lines += [f"Not run: {meta['passed_over']} points past {spec.capacity.stop_after} consecutive "
+                  f"loads of their series below {min(spec.capacity.thresholds) * 100:g}% success "
+                  "(`capacity.stop_after`).", ""]
     lines += ["## Capacity", "",
               f"The largest `{x}` whose task success rate (pooled over seeds), and that of every smaller "
               f"`{x}` of the grid, reaches the threshold.", ""]

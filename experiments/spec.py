@@ -8,8 +8,15 @@ A spec is YAML validated with the same field-level errors as a scenario::
     grid:
       loops: {start: 4, stop: 36, step: 4}     # or a list: [4, 8, 12]
       policy.name: [none, heuristic]
+    variants:                      # optional: named sets of fields, swept as the grid field `variant`
+      none: {policy.name: none}
+      learned_lower: {policy.name: learned, policy.signalling: lower}
     seeds: 1                       # a count (seeds 1..n) or a list
     repeat_until: {min_tasks: 100, max_seeds: 8}   # add seeds to a grid point until it has this many tasks
+
+A grid field is one scenario field; where the series to compare differ in several fields at once
+(a policy and how it signals, an ablation), `variants` names each set of fields and the grid sweeps
+`variant: [none, learned_lower]` (all of them when the grid leaves `variant` out).
 
 Every grid value, and every combination, is validated against the scenario schema when the spec
 is loaded, so a sweep never starts with a point that cannot run.
@@ -19,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +36,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from scenario.schema import Scenario, ScenarioError, load_scenario, shipped_names
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
+VARIANT = "variant"  # the grid field that sweeps the spec's named variants
+VARIANT_NAME = r"[a-z0-9][a-z0-9_-]*"
 
 
 class SpecModel(BaseModel):
@@ -65,6 +75,10 @@ class CapacitySpec(SpecModel):
     reference: str | None = Field(
         default=None, description="series the gains are relative to, e.g. `policy.name=none` "
         "(default: the first series of the grid)")
+    stop_after: int | None = Field(
+        default=None, ge=1, description="run loads in ascending order and stop a series once this "
+        "many consecutive loads miss the lowest threshold: its larger loads cannot change its "
+        "capacity and are not run (default: run every point)")
 
     @field_validator("thresholds")
     @classmethod
@@ -88,6 +102,9 @@ class SweepSpec(SpecModel):
     base: str = Field(description="base scenario: a name in configs/scenarios or a path to a YAML file")
     set: dict[str, Any] = Field(default_factory=dict, description="dotted field -> value, fixed for every point")
     grid: dict[str, list[Any] | Range] = Field(min_length=1, description="dotted field -> values to sweep")
+    variants: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, description="name -> {dotted field: value}: series that differ in "
+        "several fields, swept as the grid field `variant`")
     seeds: int | list[int] = Field(default=1, description="a count n (seeds 1..n) or a list of seeds")
     repeat_until: RepeatUntil | None = Field(default=None, description="add seeds until enough tasks")
     capacity: CapacitySpec = Field(default_factory=CapacitySpec, description="capacity rule")
@@ -106,6 +123,32 @@ class SweepSpec(SpecModel):
                 raise ValueError("seeds must be distinct non-negative integers")
         return v
 
+    @field_validator("variants")
+    @classmethod
+    def _variant_names(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        for name, fields in v.items():
+            if not re.fullmatch(VARIANT_NAME, name):
+                raise ValueError(f"variant name {name!r}: use lower case, digits, _ and -")
+            if not fields:
+                raise ValueError(f"variant {name!r} sets no field")
+        return v
+
+    @model_validator(mode="after")
+    def _variant_axis(self) -> SweepSpec:
+        if self.variants and VARIANT not in self.grid:
+            self.grid[VARIANT] = list(self.variants)  # every variant, swept first
+            self.grid = {VARIANT: self.grid.pop(VARIANT), **self.grid}
+        if VARIANT in self.grid:
+            if not self.variants:
+                raise ValueError("grid field `variant` needs a `variants` section naming each one")
+            values = self.grid[VARIANT]
+            unknown = [v for v in (values.values() if isinstance(values, Range) else values)
+                       if v not in self.variants]
+            if unknown:
+                raise ValueError(f"grid.variant: {', '.join(map(repr, unknown))} not in variants "
+                                 f"({', '.join(self.variants)})")
+        return self
+
     @model_validator(mode="after")
     def _capacity_axis(self) -> SweepSpec:
         if self.capacity.x not in self.grid:
@@ -118,6 +161,13 @@ class SweepSpec(SpecModel):
 
     def grid_values(self) -> dict[str, list[Any]]:
         return {k: (v.values() if isinstance(v, Range) else list(v)) for k, v in self.grid.items()}
+
+    def fields(self, values: dict[str, Any]) -> dict[str, Any]:
+        """The scenario fields a grid combination sets: a variant stands for its own fields."""
+        out: dict[str, Any] = {}
+        for k, v in values.items():
+            out.update(self.variants[v] if k == VARIANT else {k: v})
+        return out
 
     def combinations(self) -> list[dict[str, Any]]:
         """Every grid combination, in grid order (the last field varies fastest)."""
@@ -192,11 +242,16 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
     except ValidationError as exc:
         raise SweepError(_format(exc)) from None
     errors: list[tuple[str, str]] = []
-    for section, paths in (("set", list(spec.set)), ("grid", list(spec.grid))):
+    sections = [("set", list(spec.set)), ("grid", [p for p in spec.grid if p != VARIANT])]
+    sections += [(f"variants.{name}", list(fields)) for name, fields in spec.variants.items()]
+    for section, paths in sections:
         for path in paths:
             problem = field_exists(path)
             if problem:
                 errors.append((f"{section}.{path}", problem))
+            elif section.startswith("variants.") and (path in spec.set or path in spec.grid):
+                errors.append((f"{section}.{path}", "also in `set` or `grid`: a variant's field is "
+                                                    "neither fixed nor swept"))
     for path, values in spec.grid_values().items():
         if not values:
             errors.append((f"grid.{path}", "no values: give at least one"))
@@ -209,13 +264,13 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
     for path, values in spec.grid_values().items():  # each value alone, to name the bad one
         for i, v in enumerate(values):
             try:
-                load_scenario(base, [*fixed, *overrides({path: v})])
+                load_scenario(base, [*fixed, *overrides(spec.fields({path: v}))])
             except ScenarioError as exc:
                 errors += [(f"grid.{path}[{i}]", f"{v!r}: {f}: {m}") for f, m in exc.errors]
     if not errors:
         for combo in spec.combinations():
             try:
-                load_scenario(base, [*fixed, *overrides(combo)])
+                load_scenario(base, [*fixed, *overrides(spec.fields(combo))])
             except ScenarioError as exc:
                 errors += [(f"grid point {combo}", f"{f}: {m}") for f, m in exc.errors]
     if errors:

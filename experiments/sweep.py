@@ -48,6 +48,7 @@ class SweepProgress:
     done: int = 0
     failed: int = 0
     skipped: int = 0  # completed by an earlier invocation (resume)
+    passed_over: int = 0  # not run: their series had stopped (capacity.stop_after)
     wall0: float = field(default_factory=time.monotonic)
     point_wall: list[float] = field(default_factory=list)
     in_flight: dict[str, InFlight] = field(default_factory=dict)
@@ -73,6 +74,7 @@ class SweepProgress:
                 in_progress = sum(min(c["wall_s"], mean) for c in current)
                 eta = max(0.0, (remaining * mean - in_progress) / max(1, jobs))
             return {"total": self.total, "done": self.done + self.skipped, "failed": self.failed,
+                    "passed_over": self.passed_over,
                     "running": current, "eta_s": eta, "wall_s": time.monotonic() - self.wall0}
 
 
@@ -148,6 +150,40 @@ class Sweep:
                       for s in range(last + 1, last + 1 + min(need, room))]
         return extra
 
+    def _series_of(self, point: Point) -> str:
+        return json.dumps({k: v for k, v in point.values.items() if k != self.spec.capacity.x}, sort_keys=True)
+
+    def _waves(self, points: list[Point]) -> list[list[Point]]:
+        """The points in the order they run: all at once, or with ``capacity.stop_after`` one
+        load at a time, ascending, so that a series can stop before its larger loads."""
+        if self.spec.capacity.stop_after is None:
+            return [points]
+        x = self.spec.capacity.x
+        loads = sorted({p.values[x] for p in points})
+        return [[p for p in points if p.values[x] == load] for load in loads]
+
+    def _stopped_series(self) -> set[str]:
+        """Series whose last ``capacity.stop_after`` recorded loads all missed the lowest
+        threshold (task success pooled over a load's completed runs)."""
+        rule = self.spec.capacity
+        if rule.stop_after is None:
+            return set()
+        placed: dict[str, dict[Any, list[int]]] = {}
+        for r in self.dir.records():
+            if r["status"] != "completed" or rule.x not in r["values"]:
+                continue
+            series = json.dumps({k: v for k, v in r["values"].items() if k != rule.x}, sort_keys=True)
+            pt = placed.setdefault(series, {}).setdefault(r["values"][rule.x], [0, 0])
+            pt[0] += int(r["kpis"].get("tasks_placed") or 0)
+            pt[1] += int(r["kpis"].get("tasks") or 0)
+        lowest = min(rule.thresholds)
+        stopped = set()
+        for series, by_load in placed.items():
+            tail = [placed_n / tasks for _, (placed_n, tasks) in sorted(by_load.items()) if tasks][-rule.stop_after:]
+            if len(tail) == rule.stop_after and all(rate < lowest for rate in tail):
+                stopped.add(series)
+        return stopped
+
     def run(self, executor: Executor, cancel: threading.Event | None = None,
             on_event: Callable[[str, dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Run the sweep to its end (or until cancelled); returns the capacity record."""
@@ -184,16 +220,26 @@ class Sweep:
 
         todo = [p for p in points if p.key not in completed]
         while todo and not cancel.is_set():
-            executor.run([self._task(p) for p in todo], on_start, on_done, cancel)
+            for wave in self._waves(todo):
+                stopped = self._stopped_series()
+                run = [p for p in wave if self._series_of(p) not in stopped]
+                with prog.lock:
+                    prog.total -= len(wave) - len(run)
+                    prog.passed_over += len(wave) - len(run)
+                if run:
+                    executor.run([self._task(p) for p in run], on_start, on_done, cancel)
+                if cancel.is_set():
+                    break
             if cancel.is_set():
                 break
             todo = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
             points += todo
             with prog.lock:
-                prog.total = len(points)
+                prog.total += len(todo)
         state = "cancelled" if cancel.is_set() else "completed"
         meta.update(state=state, finished=datetime.now(UTC).isoformat(timespec="seconds"),
-                    wall_s=round(time.monotonic() - wall0, 1), points=len(points))
+                    wall_s=round(time.monotonic() - wall0, 1), points=len(points),
+                    passed_over=prog.passed_over)
         self.dir.write_meta(meta)
         cap = rebuild(self.dir.path)
         emit("sweep_done", {"state": state, "capacity": cap})

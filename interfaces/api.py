@@ -231,14 +231,18 @@ def sweep_limit_errors(spec: SweepSpec, scenarios_dir: Path, limits: ApiLimits) 
                                f"this coordinator runs in one sweep: {limit_source('max_sweep_points')} = "
                                f"{limits.max_sweep_points}"))
     # Only duration_s and watchdog.run_timeout_s matter here, and each is either fixed (base and
-    # set) or one grid axis: checking the base and each value of that axis covers every point.
+    # set), one grid axis, or set by variants: checking the base, each value of that axis and
+    # each variant's value covers every point.
     base = load_scenario(base_path(spec.base, scenarios_dir, allow_paths=False), overrides(spec.set))
     grid = spec.grid_values()
     for path, field, limit in (("duration_s", "max_duration_s", limits.max_duration_s),
                                ("watchdog.run_timeout_s", "max_run_timeout_s", limits.max_run_timeout_s)):
         fixed = base.duration_s if path == "duration_s" else base.watchdog.run_timeout_s
-        for where, value in ([(f"grid.{path}", v) for v in grid[path]] if path in grid
-                             else [(f"set.{path}" if path in spec.set else f"base.{path}", fixed)]):
+        candidates = ([(f"grid.{path}", v) for v in grid[path]] if path in grid
+                      else [(f"set.{path}" if path in spec.set else f"base.{path}", fixed)])
+        candidates += [(f"variants.{name}.{path}", fields[path])
+                       for name, fields in spec.variants.items() if path in fields]
+        for where, value in candidates:
             if float(value) > limit:
                 errors.append((where, f"{float(value):g} s is more than this coordinator allows: "
                                       f"{limit_source(field)} = {limit:g} s"))

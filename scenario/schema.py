@@ -214,6 +214,11 @@ class PolicyConfig(Strict):
         "application data over the downlink (the camera drops frames by PDP, stamps the budget on "
         "its packets); `lower`, to the gNB as well, as a MAC-level control message, and the "
         "scheduler weighs each UE by the urgency of its budget (docs/netsim.md)")
+    controls: Literal["both", "pdp", "budget"] = Field(
+        default="both", description="which part of the policy's QoS is applied (an ablation): "
+        "`both`; `pdp` (the PDP only: no latency budget, so no packet is discarded late and the "
+        "scheduler sees no urgency); `budget` (the budget only: PDP 1, every frame sent, stale "
+        "packets discarded)")
     control_latency_us: int = Field(
         default=1000, ge=0, le=100_000, description="`lower`: latency of the control message from "
         "the Edge's policy to the gNB's scheduler (both in the gNB site), us")

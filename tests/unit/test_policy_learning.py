@@ -220,3 +220,17 @@ def test_quick_training_exports_a_model_the_edge_loads(tmp_path: Path) -> None:
     assert (tmp_path / "training_curve.png").stat().st_size > 0
     pol = make_policy(PolicyConfig(name="learned", learned_model=str(tmp_path / "policy.onnx")))
     assert 0.1 <= pol.decide(state([track(0, -0.5)])).pdp <= 1.0
+
+
+def test_an_ablation_applies_only_part_of_the_policys_qos() -> None:
+    from domain.edge_side import CoDesign
+    from domain.tracker import Tracker
+    from scenario.schema import PolicyConfig
+
+    cfg = {"name": "fixed", "pdp": 0.5, "latency_budget_ms": 40}
+    tracker = Tracker()
+    got = {c: CoDesign(PolicyConfig(**cfg, controls=c), 0.2).decide(1, 0, tracker, None)
+           for c in ("both", "pdp", "budget")}
+    assert (got["both"].pdp, got["both"].pdb_us) == (0.5, 40_000)
+    assert (got["pdp"].pdp, got["pdp"].pdb_us) == (0.5, None)
+    assert (got["budget"].pdp, got["budget"].pdb_us) == (1.0, 40_000)

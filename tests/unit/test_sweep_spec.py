@@ -211,3 +211,63 @@ def test_repeat_until_adds_seeds_only_where_tasks_are_short(tmp_path: Path) -> N
         sweep.dir.append({"key": p.key, "values": p.values, "seed": p.seed, "status": "completed",
                           "run_id": p.key[:12], "run_dir": "runs/x", "kpis": {"tasks": 4}})
     assert sweep._more_seeds(points) == [], "max_seeds reached (seeds added earlier count, also on resume)"
+
+
+def test_variants_sweep_named_sets_of_fields() -> None:
+    s = parse_spec(spec(variants={"pdp1": {"policy.name": "none"},
+                                  "lower": {"policy.name": "learned", "policy.signalling": "lower"}}),
+                   SCENARIOS)
+    assert list(s.grid) == ["variant", "loops"], "every variant is swept when the grid leaves it out"
+    points = expand(s, SCENARIOS)
+    assert [(p.values["variant"], p.scenario.policy.name, p.scenario.policy.signalling) for p in points] == [
+        ("pdp1", "none", "app"), ("pdp1", "none", "app"), ("lower", "learned", "lower"), ("lower", "learned", "lower")]
+    codesign = load_spec(ROOT / "configs" / "sweeps" / "codesign.yaml", SCENARIOS)
+    controls = {p.values["variant"]: p.scenario.policy.controls for p in expand(codesign, SCENARIOS)}
+    assert controls["learned_lower_pdp_only"] == "pdp" and controls["learned_lower"] == "both"
+    family = load_spec(ROOT / "configs" / "sweeps" / "codesign_family.yaml", SCENARIOS)
+    speeds = {p.values["variant"]: p.scenario.cell.belt_speed_m_s for p in expand(family, SCENARIOS)}
+    assert speeds["cell2_none"] == speeds["cell2_learned_lower"] == 0.2869
+
+
+def test_bad_variants_are_named() -> None:
+    [(field, msg)] = errors_of(spec(variants={"a": {"policy.nam": "none"}}))
+    assert field == "variants.a.policy.nam" and "allowed there" in msg
+    [(field, msg)] = errors_of(spec(grid={"loops": [2], "variant": ["a", "b"]}, variants={"a": {"policy.name": "none"}}))
+    assert field == "(sweep)" and "'b' not in variants (a)" in msg
+    [(field, msg)] = errors_of(spec(grid={"loops": [2], "variant": ["a"]}))
+    assert "needs a `variants` section" in msg
+    [(field, msg)] = errors_of(spec(set={"policy.name": "none"}, variants={"a": {"policy.name": "fixed"}}))
+    assert field == "variants.a.policy.name" and "neither fixed nor swept" in msg
+    [(field, msg)] = errors_of(spec(variants={"a": {"policy.pdp": 2}}))
+    assert field.startswith("grid.variant[0]") and "policy.pdp" in msg
+
+
+def test_a_series_stops_after_its_loads_fail_and_larger_loads_are_not_run(tmp_path: Path) -> None:
+    from experiments.executors import PointOutcome, PointTask
+    from experiments.sweep import Sweep
+
+    # Success by (policy, loops): `none` fails from 6 loops, `heuristic` never in this grid.
+    success = {"none": {2: 1.0, 4: 1.0, 6: 0.5, 8: 0.4, 10: 0.9, 12: 0.1}, "heuristic": dict.fromkeys(range(2, 13, 2), 1.0)}
+    ran: list[tuple[str, int]] = []
+
+    class TableExecutor:
+        name = "table"
+
+        def run(self, tasks: list[PointTask], on_start: Any, on_done: Any, cancel: Any) -> None:
+            for t in tasks:
+                on_start(t)
+                policy, loops = t.point.values["policy.name"], t.point.values["loops"]
+                ran.append((policy, loops))
+                on_done(t, PointOutcome(t.point.key, t.run_id, "completed", None, t.runs_dir / t.run_id, 0.1,
+                                        {"tasks": 10, "tasks_placed": round(10 * success[policy][loops])}))
+
+    s = parse_spec(spec(grid={"policy.name": ["none", "heuristic"], "loops": [2, 4, 6, 8, 10, 12]},
+                        capacity={"thresholds": [1.0, 0.98], "stop_after": 2}), SCENARIOS)
+    sweep = Sweep.create(s, tmp_path, scenarios_dir=SCENARIOS)
+    cap = sweep.run(TableExecutor())  # type: ignore[arg-type]
+    assert [loops for policy, loops in ran if policy == "none"] == [2, 4, 6, 8], "stopped after 6 and 8 failed"
+    assert [loops for policy, loops in ran if policy == "heuristic"] == [2, 4, 6, 8, 10, 12]
+    assert ran[:4] == [("none", 2), ("heuristic", 2), ("none", 4), ("heuristic", 4)], "one load at a time"
+    assert cap["series"]["policy.name=none"]["success>=100%"]["capacity"] == 4
+    assert sweep.dir.meta()["passed_over"] == 2 and sweep.progress.snapshot()["total"] == 10
+    assert "Not run: 2 points" in (tmp_path / sweep.sweep_id / "report.md").read_text()
