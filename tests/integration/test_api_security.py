@@ -255,6 +255,13 @@ def test_sweep_limits_are_answered_with_422_naming_the_limit(tmp_path: Path) -> 
         r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"duration_s": 31, "detailed_loops": 0}}},
                    headers=AUTH)
         assert r.status_code == 422 and r.json()["detail"][0]["field"] == "set.duration_s"
+        # A variant's own duration is held to the limit too.
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"detailed_loops": 0}, "grid": {"loops": [2]},
+                                             "variants": {"short": {"duration_s": 5}, "long": {"duration_s": 45}}}},
+                   headers=AUTH)
+        assert r.status_code == 422
+        [err] = r.json()["detail"]
+        assert err["field"] == "variants.long.duration_s" and "45 s" in err["message"]
         r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1}}, headers=AUTH)
         assert r.status_code == 201, r.text
     assert held.started == []
