@@ -14,13 +14,14 @@ cluster for this sweep and stops it afterwards.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import shutil
 import tarfile
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,8 +59,10 @@ class RayExecutor:
         self.jobs = jobs
         self.cpus_per_point = cpus_per_point
 
-    def run(self, tasks: list[PointTask], on_start: Callable[[PointTask], None],
-            on_done: Callable[[PointTask, PointOutcome], None], cancel: threading.Event) -> None:
+    @contextlib.contextmanager
+    def session(self) -> Iterator[None]:
+        """Ray up for the block (joined, or a local cluster started and stopped here): a sweep
+        that runs in waves (``capacity.stop_after``) starts it once, not per wave."""
         import ray
 
         started_here = not ray.is_initialized()
@@ -69,6 +72,16 @@ class RayExecutor:
             else:
                 ray.init(include_dashboard=False, log_to_driver=False)
         try:
+            yield
+        finally:
+            if started_here:
+                ray.shutdown()
+
+    def run(self, tasks: list[PointTask], on_start: Callable[[PointTask], None],
+            on_done: Callable[[PointTask, PointOutcome], None], cancel: threading.Event) -> None:
+        import ray
+
+        with self.session():
             cpus = float(ray.cluster_resources().get("CPU", 1.0))
             limit = self.jobs or max(1, int(cpus // self.cpus_per_point))
             remote = ray.remote(num_cpus=self.cpus_per_point, max_retries=0)(run_remote)
@@ -86,9 +99,6 @@ class RayExecutor:
                     on_done(task, self._outcome(ray, ref, task, t0))
             for ref in pending:  # cancelled: the points in flight are rerun on resume
                 ray.cancel(ref, force=True)
-        finally:
-            if started_here:
-                ray.shutdown()
 
     @staticmethod
     def _outcome(ray: Any, ref: Any, task: PointTask, t0: float) -> PointOutcome:

@@ -8,6 +8,7 @@ skips every point whose key completed and reruns the others.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import secrets
@@ -184,6 +185,28 @@ class Sweep:
                 stopped.add(series)
         return stopped
 
+    def _run_points(self, todo: list[Point], points: list[Point], executor: Executor,
+                    on_start: Callable[[PointTask], None], on_done: Callable[[PointTask, PointOutcome], None],
+                    cancel: threading.Event) -> None:
+        """Run ``todo`` wave by wave, then the extra seeds ``repeat_until`` asks for (appended to
+        ``points``), until nothing is left or the sweep is cancelled."""
+        prog = self.progress
+        while todo and not cancel.is_set():
+            for wave in self._waves(todo):
+                stopped = self._stopped_series()
+                run = [p for p in wave if self._series_of(p) not in stopped]
+                with prog.lock:
+                    prog.total -= len(wave) - len(run)
+                    prog.passed_over += len(wave) - len(run)
+                if run:
+                    executor.run([self._task(p) for p in run], on_start, on_done, cancel)
+                if cancel.is_set():
+                    return
+            todo = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
+            points += todo
+            with prog.lock:
+                prog.total += len(todo)
+
     def run(self, executor: Executor, cancel: threading.Event | None = None,
             on_event: Callable[[str, dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Run the sweep to its end (or until cancelled); returns the capacity record."""
@@ -219,23 +242,10 @@ class Sweep:
             emit("point_done", rec)
 
         todo = [p for p in points if p.key not in completed]
-        while todo and not cancel.is_set():
-            for wave in self._waves(todo):
-                stopped = self._stopped_series()
-                run = [p for p in wave if self._series_of(p) not in stopped]
-                with prog.lock:
-                    prog.total -= len(wave) - len(run)
-                    prog.passed_over += len(wave) - len(run)
-                if run:
-                    executor.run([self._task(p) for p in run], on_start, on_done, cancel)
-                if cancel.is_set():
-                    break
-            if cancel.is_set():
-                break
-            todo = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
-            points += todo
-            with prog.lock:
-                prog.total += len(todo)
+        # An executor that holds a cluster (Ray) keeps it up across the waves.
+        session = getattr(executor, "session", contextlib.nullcontext)
+        with session():
+            self._run_points(todo, points, executor, on_start, on_done, cancel)
         state = "cancelled" if cancel.is_set() else "completed"
         meta.update(state=state, finished=datetime.now(UTC).isoformat(timespec="seconds"),
                     wall_s=round(time.monotonic() - wall0, 1), points=len(points),
