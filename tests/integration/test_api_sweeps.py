@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support import MODEL_TIMING, processes_with
 
 from coordinator.run import free_port
 from interfaces.client import ApiError
@@ -21,7 +22,6 @@ from interfaces.client import request as call
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
-MODEL_TIMING = {"nodes.camera.timing": "model", "nodes.edge.timing": "model", "nodes.robot.timing": "model"}
 
 
 def tiny_spec(name: str, loops: list[int], duration_s: float = 5.0) -> dict[str, Any]:
@@ -166,9 +166,9 @@ def test_a_sweep_survives_a_killed_coordinator_and_runs_every_point_once(tmp_pat
         before = log.read_text().splitlines()
         # The point in flight dies with its coordinator; nothing of the run is left.
         deadline = time.monotonic() + 20
-        while time.monotonic() < deadline and _processes_under(tmp_path / "sweeps" / sid):
+        while time.monotonic() < deadline and processes_with(tmp_path / "sweeps" / sid):
             time.sleep(0.5)
-        assert _processes_under(tmp_path / "sweeps" / sid) == []
+        assert processes_with(tmp_path / "sweeps" / sid) == []
         server.start()
         s = server.wait_sweep(sid, lambda s: s["state"] not in ("pending", "running"))
         assert s["state"] == "completed", s
@@ -180,18 +180,6 @@ def test_a_sweep_survives_a_killed_coordinator_and_runs_every_point_once(tmp_pat
         assert [p["state"] for p in s["points"]] == ["completed"] * 3
     finally:
         server.stop()
-
-
-def _processes_under(path: Path) -> list[int]:
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit() and int(entry.name) != os.getpid():
-            try:
-                if str(path).encode() in (entry / "cmdline").read_bytes():
-                    pids.append(int(entry.name))
-            except OSError:
-                continue
-    return pids
 
 
 def test_submit_sweep_from_the_cli_and_cancel_it(finished_sweep: Any) -> None:

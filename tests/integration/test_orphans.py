@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from support import MODEL_TIMING_SETS
 
 from coordinator.conductor import Progress
 from coordinator.run import execute_run
@@ -24,7 +25,6 @@ from scenario.schema import load_scenario
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
 SMOKE = ROOT / "configs" / "scenarios" / "smoke.yaml"
-MODEL_TIMING = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model"]
 ORPHAN_DEADLINE_S = 10.0  # the functional bound: a federate leaves this soon after its coordinator
 
 
@@ -59,7 +59,7 @@ def test_sigkilled_coordinator_leaves_no_federate_behind(tmp_path: Path) -> None
         coordinator = subprocess.Popen(
             [sys.executable, "-m", "interfaces.cli", "run", str(SMOKE), "--quiet", "--results", str(tmp_path),
              "--run-id", run_id, "--progress-file", str(progress), "--set", "duration_s=120",
-             *[a for o in MODEL_TIMING for a in ("--set", o)]],
+             *[a for o in MODEL_TIMING_SETS for a in ("--set", o)]],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err,
         )
     expected = len(load_scenario(SMOKE).federates())
@@ -108,7 +108,7 @@ def test_sigkilled_coordinator_leaves_no_federate_behind(tmp_path: Path) -> None
 
 
 def test_a_federate_killed_mid_run_leaves_its_records_up_to_the_kill(tmp_path: Path) -> None:
-    sc = load_scenario(SMOKE, ["duration_s=30", *MODEL_TIMING])
+    sc = load_scenario(SMOKE, ["duration_s=30", *MODEL_TIMING_SETS])
     launcher = ProcessLauncher()
     kill_us = 5_000_000
     struck: dict[str, int] = {}

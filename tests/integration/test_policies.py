@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from support import MODEL_TIMING_SETS
 
 from training.policy.cells import DEFAULT_FAMILY
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
-MODEL_TIMING = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model"]
 FAMILY_SEED = 14  # the three cells of the check below
 
 
@@ -37,11 +37,11 @@ def outcomes(kpis: dict[str, Any]) -> dict[tuple[int, int], str]:
 
 
 def test_learned_policy_runs_at_the_edge_of_the_smoke_scenario(tmp_path: Path) -> None:
-    k = run("configs/scenarios/smoke.yaml", ["policy.name=learned", *MODEL_TIMING], tmp_path)
+    k = run("configs/scenarios/smoke.yaml", ["policy.name=learned", *MODEL_TIMING_SETS], tmp_path)
     assert k["status"] == "completed" and k["policy"] == "learned"
     assert k["tasks"] >= 2 and k["tasks_placed"] == k["tasks"], k["task_outcomes"]
     # It lowers the PDP where the control state allows: less traffic than every frame sent.
-    none = run("configs/scenarios/smoke.yaml", ["policy.name=none", *MODEL_TIMING], tmp_path)
+    none = run("configs/scenarios/smoke.yaml", ["policy.name=none", *MODEL_TIMING_SETS], tmp_path)
     assert k["ul_injected_mbps"] < 0.8 * none["ul_injected_mbps"]
 
 
@@ -53,7 +53,7 @@ def test_co_design_places_every_task_pdp_1_places_on_three_cells_of_the_family(t
         drawn = cell.model_dump(include={"belt_speed_m_s", "object_period_s", "object_jitter_s",
                                          "object_yaw_spread_deg", "object_size_spread_m",
                                          "object_mass_spread_kg"})
-        sets = ["loops=4", "detailed_loops=0", "duration_s=40", f"seed={i + 1}", *MODEL_TIMING,
+        sets = ["loops=4", "detailed_loops=0", "duration_s=40", f"seed={i + 1}", *MODEL_TIMING_SETS,
                 *[f"cell.{name}={value}" for name, value in drawn.items()]]
         baseline = {task for task, o in outcomes(run("configs/scenarios/baseline.yaml", sets, tmp_path)).items()
                     if o == "placed"}

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from support import MODEL_TIMING_SETS, processes_with
 
 from coordinator.conductor import Progress
 from coordinator.run import execute_run
@@ -21,19 +22,7 @@ from scenario.schema import load_scenario
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
 SMOKE = ROOT / "configs" / "scenarios" / "smoke.yaml"
-MODEL_TIMING = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model"]
 
-
-def processes_of(run_id: str) -> list[int]:
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                if run_id.encode() in (entry / "cmdline").read_bytes():
-                    pids.append(int(entry.name))
-            except OSError:
-                continue
-    return pids
 
 
 def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
@@ -57,11 +46,11 @@ def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
     for name in ("config.yaml", "versions.json", "kpis.json", "tasks.parquet", "packets.parquet",
                  "jobs.parquet", "frames.parquet", "frames/camera-0.png"):
         assert (run_dir / name).exists(), name
-    assert not processes_of(kpis["run_id"])
+    assert not processes_with(kpis["run_id"])
 
 
 def run_trace(tmp_path: Path, seed: int) -> str:
-    sc = load_scenario(SMOKE, ["duration_s=3", f"seed={seed}", *MODEL_TIMING])
+    sc = load_scenario(SMOKE, ["duration_s=3", f"seed={seed}", *MODEL_TIMING_SETS])
     result = execute_run(sc, tmp_path)
     assert result.status == "completed", result.reason
     return str(result.kpis["trace_hash"])
@@ -93,14 +82,14 @@ def test_killing_a_federate_fails_the_run_quickly_naming_it(tmp_path: Path, vict
     assert result.status == "failed"
     assert result.kpis["failed_federate"] == victim and victim in (result.reason or "")
     assert elapsed < 15
-    assert not processes_of(result.run_id)
+    assert not processes_with(result.run_id)
 
 
 def test_a_hung_federate_fails_the_run_after_the_window_timeout(tmp_path: Path) -> None:
     result, elapsed = _run_with_fault(tmp_path, "edge", signal.SIGSTOP, ["watchdog.window_timeout_s=3"])
     assert result.status == "failed" and "edge" in (result.reason or "") and "hung" in (result.reason or "")
     assert elapsed < 15
-    assert not processes_of(result.run_id)
+    assert not processes_with(result.run_id)
 
 
 def test_cancel_ends_the_run_as_cancelled(tmp_path: Path) -> None:
@@ -114,4 +103,4 @@ def test_cancel_ends_the_run_as_cancelled(tmp_path: Path) -> None:
     result = execute_run(sc, tmp_path, on_progress=on_progress, cancel=cancel)
     assert result.status == "cancelled"
     assert (result.run_dir / "kpis.json").exists()
-    assert not processes_of(result.run_id)
+    assert not processes_with(result.run_id)

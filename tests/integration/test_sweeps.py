@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from support import MODEL_TIMING, processes_with
 
 from coordinator.run import free_port
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
-MODEL_TIMING = {"nodes.camera.timing": "model", "nodes.edge.timing": "model", "nodes.robot.timing": "model"}
 FIGURES = ["fig4_success", "fig5_traffic", "fig6_latency_cdf"]
 
 
@@ -40,17 +40,6 @@ def only_dir(root: Path) -> Path:
     [d] = [p for p in root.iterdir() if p.is_dir()]
     return d
 
-
-def run_processes_under(path: Path) -> list[int]:
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                if str(path).encode() in (entry / "cmdline").read_bytes():
-                    pids.append(int(entry.name))
-            except OSError:
-                continue
-    return pids
 
 
 def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path: Path) -> None:
@@ -76,9 +65,9 @@ def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path:
     assert len(first) == 1 and first[0]["status"] == "completed"
     # The point in flight dies with the sweep (parent-death signal), its federates with it.
     deadline = time.monotonic() + 20
-    while run_processes_under(sweep_dir) and time.monotonic() < deadline:
+    while processes_with(sweep_dir) and time.monotonic() < deadline:
         time.sleep(0.5)
-    assert run_processes_under(sweep_dir) == []
+    assert processes_with(sweep_dir) == []
 
     done = sweep(str(spec), "--resume", str(sweep_dir))
     assert done.returncode == 0, done.stderr
