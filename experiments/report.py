@@ -17,7 +17,7 @@ from experiments.cell_capacity import measure_ul_capacity
 from experiments.figures import latency_figure, save, success_figure, traffic_figure
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
-from experiments.summary import capacity, series_name, summarise
+from experiments.summary import capacity, capacity_text, gain_text, series_name, summarise
 from fabric.tables import write_json
 from scenario.schema import load_scenario
 
@@ -132,17 +132,16 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
                   "(`capacity.stop_after`).", ""]
     lines += ["## Capacity", "",
               f"The largest `{x}` whose task success rate (pooled over seeds), and that of every smaller "
-              f"`{x}` of the grid, reaches the threshold.", ""]
+              f"`{x}` of the grid, reaches the threshold; `>=` where no load swept failed (the "
+              f"capacity lies at or beyond the grid's end).", ""]
     lines += ["| series | " + " | ".join(labels) + " | gain over " + f"`{cap['reference']}` |",
               "|---" * (len(labels) + 2) + "|"]
     for name, entry in cap["series"].items():
         gains = cap["gain_over_reference"].get(name, {})
         cells = []
         for lab in labels:
-            e = entry[lab]
-            note = "" if e["monotone"] else f" (passes again up to {e['max_passing']})"
-            cells.append(f"{e['capacity']}{note}")
-        gain = " / ".join(f"{g['ratio']:.3g}x" if g["ratio"] is not None else "-" for g in gains.values())
+            cells.append(capacity_text(entry[lab]))
+        gain = " / ".join(gain_text(g, entry[lab]) for lab, g in gains.items())
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain} |")
     if cell:
         lines += ["", f"Cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]

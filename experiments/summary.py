@@ -119,6 +119,20 @@ def capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str],
     return out
 
 
+def capacity_text(entry: dict[str, Any]) -> str:
+    """A capacity as a table shows it: ``>= 64`` when no load swept failed, with where a
+    non-monotone curve passes again."""
+    note = "" if entry["monotone"] else f" (passes again up to {entry['max_passing']})"
+    return f"{'>= ' if entry.get('lower_bound') else ''}{entry['capacity']}{note}"
+
+
+def gain_text(gain: dict[str, Any], entry: dict[str, Any]) -> str:
+    """A gain over the reference series (``entry``: this series' capacity at that threshold)."""
+    if gain["ratio"] is None:
+        return "-"
+    return f"{'>= ' if entry.get('lower_bound') else ''}{gain['ratio']:.3g}x"
+
+
 def _label(threshold: float) -> str:
     return f"success>={threshold * 100:g}%"
 
@@ -128,6 +142,8 @@ def capacity_of_curve(curve: list[tuple[Any, float | None]], threshold: float) -
 
     capacity: the largest load with every load up to it at or above the threshold (0 when the
     smallest fails; a load without a result stops the scan, since nothing is known past it).
+    lower_bound: no load of the curve fails, so the capacity lies at or beyond the largest load
+    swept (extend the grid to find it).
     """
     eps = 1e-12
     cap: Any = 0
@@ -147,4 +163,5 @@ def capacity_of_curve(curve: list[tuple[Any, float | None]], threshold: float) -
     passing = [load for load, rate in curve if rate is not None and rate + eps >= threshold]
     max_passing = max(passing) if passing else 0
     return {"capacity": cap, "first_failing": first_fail, "max_passing": max_passing,
-            "monotone": max_passing == cap, "missing": missing}
+            "monotone": max_passing == cap, "missing": missing,
+            "lower_bound": bool(curve) and first_fail is None}

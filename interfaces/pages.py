@@ -10,6 +10,8 @@ from __future__ import annotations
 from html import escape
 from typing import Any
 
+from experiments.summary import capacity_text, gain_text
+
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
 table { border-collapse: collapse; margin: 1em 0; }
@@ -80,10 +82,8 @@ def capacity_table(cap: dict[str, Any]) -> str:
         gains = cap.get("gain_over_reference", {}).get(name, {})
         cells = ""
         for lab in labels:
-            e = entry[lab]
-            note = "" if e["monotone"] else f" (passes again up to {e['max_passing']})"
-            cells += f"<td>{_fmt(e['capacity'])}{escape(note)}</td>"
-        gain = " / ".join(f"{g['ratio']:.3g}x" if g["ratio"] is not None else "-" for g in gains.values())
+            cells += f"<td>{escape(capacity_text(entry[lab]))}</td>"
+        gain = escape(" / ".join(gain_text(g, entry[lab]) for lab, g in gains.items()))
         rows += f'<tr><td class="l">{escape(name)}</td>{cells}<td>{gain}</td></tr>'
     ref = escape(str(cap.get("reference")))
     cell = cap.get("cell_ul_capacity_mbps")

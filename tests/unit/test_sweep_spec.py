@@ -271,3 +271,13 @@ def test_a_series_stops_after_its_loads_fail_and_larger_loads_are_not_run(tmp_pa
     assert cap["series"]["policy.name=none"]["success>=100%"]["capacity"] == 4
     assert sweep.dir.meta()["passed_over"] == 2 and sweep.progress.snapshot()["total"] == 10
     assert "Not run: 2 points" in (tmp_path / sweep.sweep_id / "report.md").read_text()
+
+
+def test_a_capacity_no_load_failed_is_a_lower_bound() -> None:
+    from experiments.summary import capacity_text, gain_text
+
+    c = capacity_of_curve([(4, 1.0), (8, 1.0)], 1.0)
+    assert c["lower_bound"] and capacity_text(c) == ">= 8"
+    assert gain_text({"ratio": 2.0}, c) == ">= 2x"
+    c = capacity_of_curve([(4, 1.0), (8, 0.5), (12, 1.0)], 1.0)
+    assert not c["lower_bound"] and capacity_text(c) == "4 (passes again up to 12)"
