@@ -58,11 +58,13 @@ def mean_ci(values: list[float]) -> tuple[float | None, float | None]:
 
 def summarise(points: list[dict[str, Any]], grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
     """One row per grid combination from the points table's rows (``kpi.*`` columns), in grid
-    order (``grid``: field -> values as the spec lists them)."""
+    order (``grid``: field -> values as the spec lists them). Points of values the grid no longer
+    lists (a resumed sweep whose grid was narrowed) are left out."""
     grid_fields = list(grid)
+    points = [p for p in points if all(p.get(f) in grid[f] for f in grid_fields)]
 
     def order(p: dict[str, Any]) -> list[int]:
-        return [grid[f].index(p.get(f)) if p.get(f) in grid[f] else len(grid[f]) for f in grid_fields]
+        return [grid[f].index(p.get(f)) for f in grid_fields]
 
     groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for p in sorted(points, key=order):

@@ -197,11 +197,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def capacity_table(cap: dict[str, Any]) -> str:
+    from experiments.summary import capacity_text
+
     labels = list(next(iter(cap["series"].values())).keys()) if cap.get("series") else []
     width = max([len(n) for n in cap.get("series", {})] + [6])
     lines = [f"{'series':<{width}}  " + "  ".join(f"{lab:>14}" for lab in labels)]
     for name, entry in cap.get("series", {}).items():
-        lines.append(f"{name:<{width}}  " + "  ".join(f"{entry[lab]['capacity']!s:>14}" for lab in labels))
+        lines.append(f"{name:<{width}}  " + "  ".join(f"{capacity_text(entry[lab]):>14}" for lab in labels))
     return "\n".join(lines)
 
 

@@ -298,9 +298,30 @@ class Scenario(Strict):
                 f"physics_timestep_us ({self.physics_timestep_us}) must divide window_us ({w})"
             )
         self._hall_into_nr()
+        self._cells_in_hall()
         if self.robot.control_period_us % self.physics_timestep_us:
             raise ValueError("robot.control_period_us must be a multiple of physics_timestep_us")
         return self
+
+    def _cells_in_hall(self) -> None:
+        """Every loop's cell, and so its camera and robot modems, must stand inside the hall."""
+        def outside(n: int) -> tuple[str, tuple[float, float, float]] | None:
+            h = self.hall
+            for ue, (x, y, z) in self.ue_positions_m(n).items():
+                if not (0 <= x <= h.length_m and 0 <= y <= h.width_m and 0 <= z <= h.height_m):
+                    return ue, (x, y, z)
+            return None
+
+        if (bad := outside(self.loops)) is None:
+            return
+        fits = next((n for n in range(self.loops - 1, 0, -1) if outside(n) is None), 0)
+        ue, pos = bad
+        raise ValueError(
+            f"loops = {self.loops} cells do not fit in the hall ({self.hall.length_m:g} x "
+            f"{self.hall.width_m:g} m): {ue} would stand at ({pos[0]:g}, {pos[1]:g}) m; at most "
+            f"{fits} fit with hall.cells_per_row = {self.hall.cells_per_row} and hall.cell_pitch_m = "
+            f"{tuple(self.hall.cell_pitch_m)}: lower loops, or enlarge hall.length_m / hall.width_m "
+            f"(and hall.cells_per_row, hall.gnb_position_m) to hold them")
 
     def _hall_into_nr(self) -> None:
         """The NR channel model uses the hall of the scenario; a different one is a mistake."""
@@ -334,11 +355,12 @@ class Scenario(Strict):
             out.append(("loops", "loops"))
         return out
 
-    def ue_positions_m(self) -> dict[str, tuple[float, float, float]]:
-        """Radio endpoints (camera-i, robot-i) and their positions in the hall, metres."""
+    def ue_positions_m(self, loops: int | None = None) -> dict[str, tuple[float, float, float]]:
+        """Radio endpoints (camera-i, robot-i) and their positions in the hall, metres (of the
+        scenario's loops, or of ``loops``)."""
         h = self.hall.ue_height_m
         out: dict[str, tuple[float, float, float]] = {}
-        for i, (x, y) in enumerate(self.hall.cell_origins(self.loops)):
+        for i, (x, y) in enumerate(self.hall.cell_origins(self.loops if loops is None else loops)):
             out[f"camera-{i}"] = (x - 0.1, y, h)
             out[f"robot-{i}"] = (x, y + 0.6, h)
         return out

@@ -54,6 +54,14 @@ def test_cell_layout_gives_every_ue_a_position_in_the_hall() -> None:
     assert all(0 <= x <= sc.hall.length_m and 0 <= y <= sc.hall.width_m for x, y, _ in pos.values())
 
 
+def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
+    assert parse_scenario({"loops": 64, "detailed_loops": 0}).loops == 64
+    with pytest.raises(ScenarioError, match=r"loops = 72 cells do not fit in the hall .* at most 64 fit"):
+        parse_scenario({"loops": 72, "detailed_loops": 0})
+    wide = {"length_m": 120, "width_m": 100, "gnb_position_m": [60, 50, 1.5], "cells_per_row": 12}
+    assert parse_scenario({"loops": 128, "detailed_loops": 0, "hall": wide}).loops == 128
+
+
 def test_cli_bad_input_exits_2_without_traceback(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("loops: 2\ncamera:\n  fsp: 30\n")
