@@ -18,7 +18,8 @@ speed for every job (``HostScore.component_ratios``).
 The measured score is cached in ``$XDG_CACHE_HOME/cosim5g/host_score.json`` (default
 ``~/.cache/cosim5g``), keyed by the CPU model, the interpreter and library versions and the
 scoring workload's version, and remeasured after ``CACHE_MAX_AGE_DAYS``; a score measured while
-the host had no idle core (1-minute load average >= cores) serves its process only. ``COSIM5G_HOST_SCORE``
+other processes kept more than ``BUSY_CORES_LIMIT`` cores busy (from /proc/stat, over the
+measurement itself) serves its process only. ``COSIM5G_HOST_SCORE``
 injects a score (tests, or a host measured elsewhere).
 
 ``python -m fabric.host_speed`` measures and prints this host's score (``--write-cache``
@@ -55,6 +56,8 @@ REFERENCE_FILE = "data/reference_core.json"
 # probe a node takes during a run to see whether its speed drifted.
 MEASURE_REPS = 15
 PROBE_REPS = 3
+# A measurement during which other processes kept more than this many cores busy is not cached.
+BUSY_CORES_LIMIT = 0.25
 
 
 class _Inputs:
@@ -273,18 +276,41 @@ def host_score() -> HostScore:
     cached = _read_cache(path, env)
     if cached is not None:
         return cached
+    before = _host_cpu_s()
+    own0, wall0 = time.process_time(), time.monotonic()
     fresh = measure()
-    load = os.getloadavg()[0]
-    if load >= (os.cpu_count() or 1):
-        # Measured while the host had no idle core: good for this process, which runs under the
-        # same contention, but not as this host's speed for the next week.
-        fresh.source = f"measured (not cached: load average {load:.1f})"
+    others = _others_busy_cores(before, _host_cpu_s(), time.process_time() - own0, time.monotonic() - wall0)
+    if others is not None and others > BUSY_CORES_LIMIT:
+        # Other work shared the host while it was measured (on a 2-core host, even one busy core
+        # slows this one: shared caches, SMT siblings): good for this process, which runs under
+        # the same contention, but not as this host's speed for the next week. Measured during
+        # the measurement itself: the load average lags by a minute.
+        fresh.source = f"measured (not cached: {others:.2f} other cores busy)"
         return fresh
     try:
         _write_atomic(path, asdict(fresh))
     except OSError:
         pass  # a read-only home (containers): the score is simply measured at every start
     return fresh
+
+
+def _host_cpu_s() -> float | None:
+    """CPU seconds the whole host has spent busy since boot (/proc/stat; None elsewhere)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return None
+    ticks = [int(v) for v in fields[:8]]  # user nice system idle iowait irq softirq steal
+    busy = sum(ticks) - ticks[3] - ticks[4]
+    return busy / os.sysconf("SC_CLK_TCK")
+
+
+def _others_busy_cores(before: float | None, after: float | None, own_cpu_s: float,
+                       wall_s: float) -> float | None:
+    """Cores other processes kept busy on average while this one measured (None: unknown)."""
+    if before is None or after is None or wall_s <= 0:
+        return None
+    return max(0.0, (after - before - own_cpu_s) / wall_s)
 
 
 def probe() -> float:

@@ -219,6 +219,25 @@ def test_an_injected_score_scales_real_jobs(monkeypatch: pytest.MonkeyPatch) -> 
     assert summary["scale"] == pytest.approx(2.0) and summary["host_score_source"] == "injected"
 
 
+def test_a_score_measured_while_other_work_ran_is_not_cached(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(host_speed.SCORE_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    busy = iter([100.0, 160.0])  # the host's busy CPU seconds before and after: far more than ours
+    monkeypatch.setattr(host_speed, "_host_cpu_s", lambda: next(busy))
+    monkeypatch.setattr(host_speed, "measure_components",
+                        lambda reps=1: {"python": 8.0, "numpy": 4.0, "opencv": 2.0, "zlib": 2.0})
+    host_speed.host_score.cache_clear()
+    try:
+        got = host_speed.host_score()
+    finally:
+        host_speed.host_score.cache_clear()
+    assert got.source.startswith("measured (not cached:") and "other cores busy" in got.source
+    assert not (tmp_path / "cosim5g" / "host_score.json").exists()
+    assert host_speed._others_busy_cores(10.0, 10.5, 0.5, 1.0) == 0.0
+    assert host_speed._others_busy_cores(10.0, 12.5, 0.5, 2.0) == 1.0
+
+
 def test_a_bad_injected_score_names_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(host_speed.SCORE_ENV, "fast")
     with pytest.raises(ValueError, match="COSIM5G_HOST_SCORE = 'fast'.*positive number"):
@@ -229,7 +248,7 @@ def test_the_host_score_is_cached_with_the_cpu_model_and_date(tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(host_speed.SCORE_ENV, raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.setattr(host_speed.os, "getloadavg", lambda: (0.1, 0.1, 0.1))
+    monkeypatch.setattr(host_speed, "_host_cpu_s", lambda: 100.0)  # an otherwise idle host
     calls = []
 
     def fake_components(reps: int = 1) -> dict[str, float]:
