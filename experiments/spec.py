@@ -136,8 +136,7 @@ class SweepSpec(SpecModel):
     @model_validator(mode="after")
     def _variant_axis(self) -> SweepSpec:
         if self.variants and VARIANT not in self.grid:
-            self.grid[VARIANT] = list(self.variants)  # every variant, swept first
-            self.grid = {VARIANT: self.grid.pop(VARIANT), **self.grid}
+            self.grid = {VARIANT: list(self.variants), **self.grid}  # every variant, swept first
         if VARIANT in self.grid:
             if not self.variants:
                 raise ValueError("grid field `variant` needs a `variants` section naming each one")

@@ -151,8 +151,9 @@ class Sweep:
                       for s in range(last + 1, last + 1 + min(need, room))]
         return extra
 
-    def _series_of(self, point: Point) -> str:
-        return json.dumps({k: v for k, v in point.values.items() if k != self.spec.capacity.x}, sort_keys=True)
+    def _series_of(self, values: dict[str, Any]) -> str:
+        """The series a grid combination belongs to: its values other than the load."""
+        return json.dumps({k: v for k, v in values.items() if k != self.spec.capacity.x}, sort_keys=True)
 
     def _waves(self, points: list[Point]) -> list[list[Point]]:
         """The points in the order they run: all at once, or with ``capacity.stop_after`` one
@@ -173,8 +174,7 @@ class Sweep:
         for r in self.dir.records():
             if r["status"] != "completed" or rule.x not in r["values"]:
                 continue
-            series = json.dumps({k: v for k, v in r["values"].items() if k != rule.x}, sort_keys=True)
-            pt = placed.setdefault(series, {}).setdefault(r["values"][rule.x], [0, 0])
+            pt = placed.setdefault(self._series_of(r["values"]), {}).setdefault(r["values"][rule.x], [0, 0])
             pt[0] += int(r["kpis"].get("tasks_placed") or 0)
             pt[1] += int(r["kpis"].get("tasks") or 0)
         lowest = min(rule.thresholds)
@@ -194,7 +194,7 @@ class Sweep:
         while todo and not cancel.is_set():
             for wave in self._waves(todo):
                 stopped = self._stopped_series()
-                run = [p for p in wave if self._series_of(p) not in stopped]
+                run = [p for p in wave if self._series_of(p.values) not in stopped]
                 with prog.lock:
                     prog.total -= len(wave) - len(run)
                     prog.passed_over += len(wave) - len(run)

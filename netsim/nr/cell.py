@@ -150,9 +150,9 @@ class NrCell(Cell):
         self._gnb_sr = [False] * n
         self._ul_known: set[int] = set()  # UEs the gNB would schedule (bytes > 0 or SR)
         self._ul_prio = [1 << 30] * n  # QoS priority the gNB knows per UE (from BSR / SR)
-        # Urgency weights of the UEs' dynamic delay budgets, as signalled to the gNB (1: none).
-        self._ul_urgency = [1.0] * n
-        self._dl_urgency = [1.0] * n
+        # Urgency weights of the UEs' dynamic delay budgets, as signalled to the gNB (1: none);
+        # one weight per UE, for both links.
+        self._urgency = [1.0] * n
         self._ue_grants = [0] * n  # new-transmission grants in the pipeline, per UE
         self._ue_grant_bytes = [0] * n
         self._sr_candidates: set[int] = set()  # UEs with a triggered BSR and no grant yet
@@ -337,7 +337,7 @@ class NrCell(Cell):
             u = self._index.get(ue)
             if u is None:
                 raise ValueError(f"flow {flow!r}: unknown UE {ue!r}")
-            self._ul_urgency[u] = self._dl_urgency[u] = qos.urgency
+            self._urgency[u] = qos.urgency
         for links in ((self._ul_buf, True), (self._dl_buf, False)):
             bufs, ul = links
             for u, buf in enumerate(bufs):
@@ -568,7 +568,7 @@ class NrCell(Cell):
             candidates = [u for u in self._ul_known if u not in taken and busy[u] < n_proc]
             gnb_bytes = self._gnb_ul_bytes
             extra = 8 * cfg.bsr_bytes
-            for u in self._sched_ul.order(candidates, self._ul_prio, self._rate_ul, s, self._ul_urgency):
+            for u in self._sched_ul.order(candidates, self._ul_prio, self._rate_ul, s, self._urgency):
                 if count >= max_ues or pos >= n_prb:
                     break
                 from_sr = gnb_bytes[u] == 0
@@ -800,7 +800,7 @@ class NrCell(Cell):
             elif u not in taken and busy[u] < n_proc:
                 candidates.append(u)
         la = self._la_dl
-        for u in self._sched_dl.order(candidates, self._dl_prio, self._rate_dl, s, self._dl_urgency):
+        for u in self._sched_dl.order(candidates, self._dl_prio, self._rate_dl, s, self._urgency):
             if count >= max_ues or pos >= n_prb:
                 break
             buf = self._dl_buf[u]
