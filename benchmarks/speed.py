@@ -14,16 +14,21 @@ processing windows (``busy``), and an upper bound of the share spent in the wind
 the windows cannot take less than the busiest federate's processing.
 
 Writes results/bench/speed.{md,json}. Figures from a shared machine: compare ratios within one
-run of this script.
+run of this script. With ``--profile`` every federate of the process-runtime cases runs under
+cProfile (which slows it down: its speeds are not the benchmark's) and speed.md lists, per
+federate, the functions that took the most time of their own; the statistics are kept under
+results/bench/profile/<case>/<federate>.pstats.
 
-    python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1,netsim]
+    python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1,netsim] [--profile]
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
+import pstats
 import sys
 import tempfile
 import time
@@ -33,19 +38,26 @@ from typing import Any
 from coordinator.run import execute_run
 from netsim.standalone import run_uplink_cameras
 from scenario.schema import load_scenario
+from services.main import PROFILE_DIR_ENV
 
 ROOT = Path(__file__).parents[1]
 CASES = ("k0", "k1", "netsim")
 
 
-def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path) -> dict[str, Any]:
+def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path,
+             profile_dir: Path | None = None) -> dict[str, Any]:
     """One run of the baseline scenario (policy none) at ``loops`` / ``detailed``; its speed and
-    where the wall time went."""
+    where the wall time went. With ``profile_dir`` its federates write their cProfile there."""
     sc = load_scenario(ROOT / "configs" / "scenarios" / "baseline.yaml",
                        [f"loops={loops}", f"detailed_loops={detailed}", f"duration_s={duration_s}",
                         f"runtime={runtime}"])
     t0 = time.perf_counter()
-    r = execute_run(sc, results)
+    if profile_dir is not None:
+        os.environ[PROFILE_DIR_ENV] = str(profile_dir)  # federate processes inherit it
+    try:
+        r = execute_run(sc, results)
+    finally:
+        os.environ.pop(PROFILE_DIR_ENV, None)
     wall = time.perf_counter() - t0
     k = r.kpis
     feds = k.get("federates") or {}
@@ -76,6 +88,26 @@ def netsim_case(duration_s: float) -> dict[str, Any]:
             best = r
     assert best is not None
     return {"slots_per_second": best["slots_per_second"], "ues": 36, "offered_mbps": best["offered_mbps"]}
+
+
+# Time spent waiting for the next control or data message: not work.
+_IDLE = ("method 'get' of '_queue.SimpleQueue' objects",)
+
+
+def profile_text(profile_dir: Path, top: int = 12) -> str:
+    """Per federate, the ``top`` functions by own time (waiting for messages left out), as shares
+    of the federate's profiled time."""
+    out = []
+    for path in sorted(profile_dir.glob("*.pstats")):
+        stats = pstats.Stats(str(path), stream=io.StringIO())
+        rows = [(tt, f"{Path(fn).name}:{line}({name})" if line else name, nc)
+                for (fn, line, name), (_, nc, tt, _, _) in stats.stats.items()  # type: ignore[attr-defined]
+                if not any(i in name for i in _IDLE)]
+        total = sum(tt for tt, _, _ in rows)
+        out += [f"- {path.stem}: {total:.1f} s of own time besides waiting; most:"]
+        for tt, where, calls in sorted(rows, reverse=True)[:top]:
+            out.append(f"  - {tt / total:5.1%} {where} ({calls} calls)")
+    return "\n".join(out)
 
 
 def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[str, Any] | None) -> str:
@@ -113,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--docker", action="store_true", help="also the K=1 case in the docker runtime")
     ap.add_argument("--only", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
+    ap.add_argument("--profile", action="store_true",
+                    help="run the process-runtime federates under cProfile and list where their time went")
     args = ap.parse_args(argv)
     only = [c.strip() for c in args.only.split(",") if c.strip()]
     bad = [c for c in only if c not in CASES]
@@ -123,15 +157,23 @@ def main(argv: list[str] | None = None) -> int:
     runs: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="cosim5g-speed-") as tmp:
         results = Path(tmp)
+        def profile(case: str) -> Path | None:
+            return args.out / "profile" / case if args.profile else None
+
         if "k0" in only:
-            runs["k0 process"] = run_case(args.loops, 0, args.duration_s, "process", results)
+            runs["k0 process"] = run_case(args.loops, 0, args.duration_s, "process", results, profile("k0"))
         if "k1" in only:
-            runs["k1 process"] = run_case(args.loops, 1, args.duration_s, "process", results)
+            runs["k1 process"] = run_case(args.loops, 1, args.duration_s, "process", results, profile("k1"))
             if args.docker:
                 runs["k1 docker"] = run_case(args.loops, 1, args.duration_s, "docker", results)
     netsim = netsim_case(2.0) if "netsim" in only else None
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, runs, netsim)
+    if args.profile:
+        for case in ("k0", "k1"):
+            if (args.out / "profile" / case).is_dir():
+                text += (f"\n## Profile, {case} process (cProfile: speeds above are slowed by it)\n\n"
+                         + profile_text(args.out / "profile" / case) + "\n")
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "speed.md").write_text(text)

@@ -15,6 +15,7 @@ it vanishes, so a coordinator that dies takes its run's federates with it.
 from __future__ import annotations
 
 import hashlib
+import math
 import queue
 import time
 from collections.abc import Callable
@@ -52,6 +53,9 @@ class ConductorResult:
 
 
 HealthCheck = Callable[[], None]  # raises RunFailed
+# A dead federate fails the run within this much wall time; checking before every control
+# message (several a window) would cost more than the windows themselves.
+HEALTH_EVERY_S = 0.05
 
 
 class Conductor:
@@ -69,6 +73,7 @@ class Conductor:
         self.on_progress = on_progress
         self.progress_every_s = progress_every_s
         self._inbox: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
+        self._health_at = -math.inf
         self._trace = hashlib.sha256()
         self.windows = 0
         self.t_us = 0
@@ -78,15 +83,18 @@ class Conductor:
         bus.declare_token(keys.coordinator_alive(run_id))
 
     def _next(self, deadline: float, check_health: bool = True) -> tuple[str, str, bytes] | None:
-        """Next control message, polling health every 50 ms; None at the deadline."""
+        """Next control message, checking health at most every ``HEALTH_EVERY_S`` (and at least
+        that often while waiting); None at the deadline."""
         while True:
-            if check_health:
+            now = time.monotonic()
+            if check_health and now - self._health_at >= HEALTH_EVERY_S:
+                self._health_at = now
                 self.health()
-            left = deadline - time.monotonic()
+            left = deadline - now
             if left <= 0:
                 return None
             try:
-                return self._inbox.get(timeout=min(0.05, left))
+                return self._inbox.get(timeout=min(HEALTH_EVERY_S, left))
             except queue.Empty:
                 continue
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from domain import cell_geometry as g
 from domain.arm import HOME_Q, JOINT_SPEED_MAX_RAD_S, TCP_SPEED_MAX_M_S
-from domain.kinematics import ArmKinematics
+from domain.kinematics import ArmKinematics, norm
 from scenario.schema import RobotConfig
 
 HOVER_M = 0.05  # cup clearance above a part's top while aligning over it
@@ -92,7 +92,7 @@ class PickController:
         self.home = np.array(g.HOME_TOOL_POS, dtype=float)
         self.q = np.array(HOME_Q, dtype=float)  # measured joint positions
         self.q_sp = self.q.copy()  # planned joint positions
-        self.p_sp = self.kin.fk(self.q)[0]  # planned cup position (cell frame)
+        self.p_sp = self.kin.tcp_position(self.q)  # planned cup position (cell frame)
         self.v_sp = np.zeros(3)
         self.synced = False
         self.gripped = False
@@ -129,7 +129,7 @@ class PickController:
         if not self.synced:  # start planning from where the arm really is
             self.synced = True
             self.q_sp = self.q.copy()
-            self.p_sp = self.kin.fk(self.q)[0]
+            self.p_sp = self.kin.tcp_position(self.q)
             self.v_sp[:] = 0.0
 
     # ---- prediction and target choice -----------------------------------------------------------
@@ -159,7 +159,7 @@ class PickController:
             if p[2] > g.BELT_TOP_Z + 3 * self.half or abs(p[1]) > g.BELT_HALF_WIDTH:
                 continue  # lifted already, or not on the belt
             hover = p + np.array([0.0, 0.0, self.half + HOVER_M])
-            t_grasp = float(np.linalg.norm(hover - self.p_sp)) / APPROACH_SPEED_M_S + GRASP_TIME_S
+            t_grasp = norm(hover - self.p_sp) / APPROACH_SPEED_M_S + GRASP_TIME_S
             if max(p[0], g.PICK_X_RANGE[0]) + tr.v[0] * t_grasp > g.PICK_X_RANGE[1]:
                 continue  # would leave the window before the grip
             if p[0] > best_x:
@@ -173,7 +173,7 @@ class PickController:
         aim = self.predict(track, t)
         for _ in range(2):  # time to get there, at the planning speed, then where the part is
             hover = aim + np.array([0.0, 0.0, self.half + HOVER_M])
-            eta_us = int(np.linalg.norm(hover - self.p_sp) / APPROACH_SPEED_M_S * 1e6)
+            eta_us = int(norm(hover - self.p_sp) / APPROACH_SPEED_M_S * 1e6)
             aim = self.predict(track, t + eta_us)
         goal = aim + np.array([0.0, 0.0, self.half + HOVER_M])
         vel = np.array([track.v[0], track.v[1], 0.0])
@@ -192,7 +192,7 @@ class PickController:
 
     def step(self, now: int) -> tuple[np.ndarray, bool]:
         """Joint targets (rad, six) and suction command for the current control period."""
-        tip = self.kin.fk(self.q)[0]
+        tip = self.kin.tcp_position(self.q)
         track = None
         if self.target is not None:
             # A target missing from the latest list (occluded by the cup, or just sealed and
@@ -229,9 +229,9 @@ class PickController:
                     self.holds += 1  # hold over the part; never descend on a stale estimate
                 elif (pred[0] >= g.PICK_X_RANGE[0]
                       and pred[0] + track.v[0] * GRASP_TIME_S <= g.PICK_X_RANGE[1]
-                      and np.linalg.norm(self.p_sp[:2] - pred[:2]) < ALIGN_TOL_M
-                      and np.linalg.norm(self.v_sp[:2] - track.v[:2]) < SPEED_MATCH_M_S
-                      and np.linalg.norm(tip - self.p_sp) < SERVO_TOL_M):
+                      and norm(self.p_sp[:2] - pred[:2]) < ALIGN_TOL_M
+                      and norm(self.v_sp[:2] - track.v[:2]) < SPEED_MATCH_M_S
+                      and norm(tip - self.p_sp) < SERVO_TOL_M):
                     self._set_phase(Phase.DESCEND, now)
                     self.suction = True  # vacuum on before contact, as on a real cell
         elif ph is Phase.DESCEND:
@@ -272,7 +272,7 @@ class PickController:
             goal = place + np.array([0.0, 0.0, 0.05])
             if not self.gripped:
                 self._lost(now)
-            elif ((np.linalg.norm(tip[:2] - place[:2]) < 0.01 and np.linalg.norm(self.p_sp - goal) < 0.005)
+            elif ((norm(tip[:2] - place[:2]) < 0.01 and norm(self.p_sp - goal) < 0.005)
                   or now - self.phase_since_us > TRANSFER_TIMEOUT_US):
                 self._set_phase(Phase.LOWER, now)
         elif ph is Phase.LOWER:
@@ -280,7 +280,7 @@ class PickController:
             vmax = DESCEND_SPEED_M_S
             if not self.gripped:
                 self._lost(now)
-            elif np.linalg.norm(self.p_sp - goal) < 0.002:
+            elif norm(self.p_sp - goal) < 0.002:
                 self.bottom_since_us = self.bottom_since_us or now
                 # Let go once the cup is there, or once it has stopped short (the part already
                 # touches the platform).
@@ -330,16 +330,16 @@ class PickController:
         constant; total speed and acceleration limited."""
         dt = self.dt
         err = goal - self.p_sp
-        dist = float(np.linalg.norm(err))
+        dist = norm(err)
         v_des = vel.copy()
         if dist > 1e-9:
             corr = min(vmax, math.sqrt(2 * TCP_ACCEL_M_S2 * dist), dist / CONVERGE_TAU_S)
             v_des += err * (corr / dist)
-        speed = float(np.linalg.norm(v_des))
+        speed = norm(v_des)
         if speed > TCP_SPEED_MAX_M_S:
             v_des *= TCP_SPEED_MAX_M_S / speed
         dv = v_des - self.v_sp
-        n = float(np.linalg.norm(dv))
+        n = norm(dv)
         if n > TCP_ACCEL_M_S2 * dt:
             dv *= TCP_ACCEL_M_S2 * dt / n
         self.v_sp += dv
@@ -354,7 +354,7 @@ class PickController:
         over = float(np.abs(dq).max()) / limit
         if over > 1.0:  # slow the whole move down so no joint exceeds its speed
             q = self.q_sp + dq / over
-            self.p_sp = self.kin.fk(q)[0]
+            self.p_sp = self.kin.tcp_position(q)
             self.v_sp /= over
         qd = (q - self.q_sp) / self.dt
         self.q_sp = q

@@ -40,6 +40,10 @@ ON_BELT_SLACK_M = 0.004  # a part's centre this close above resting height rides
 GRIPPED_CONTYPE = 4  # a held part stops colliding with the cup and arm (the weld holds it)
 CHECK_PERIOD_US = 10_000  # which parts ride the belt, and task outcomes, are checked this often
 _OFFSETS = np.arange(3)
+# A geom in this group is not drawn (MjvOption shows groups 0-2 by default): where rendering
+# leaves out the other cells, their geoms sit in it for the duration of the render.
+HIDDEN_GROUP = 5
+CAMERA_DOWN_COS = 0.99  # a cell camera counts as looking straight down within ~8 degrees
 
 
 def spawn_plan(sc: Scenario, rng: np.random.Generator, step_us: int) -> list[tuple[int, dict[str, float]]]:
@@ -118,6 +122,65 @@ class CellState:
     skipped_spawns: int = 0
 
 
+class CellView:
+    """Which geoms a cell camera cannot show: the other cells' geoms, when every one of them and
+    its shadow lies outside the camera's view. Rendering a frame without them gives the same
+    pixels (the scene is drawn geom by geom; one that covers no pixel and shadows none changes
+    none) for the cost of one cell instead of the hall (half the time at 32 cells).
+
+    Checked at every frame from the geoms' current positions and bounding spheres, so an arm or a
+    part that comes near a neighbour's view is drawn; a camera that does not look straight down,
+    a light that is not directional and a reflective material make every frame draw the hall."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        self.model = model
+        self.groups = model.geom_group.copy()
+        cell_of = np.full(model.ngeom, -1)
+        for gid in range(model.ngeom):
+            for name in (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, gid),
+                         mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[gid]))):
+                head = (name or "").split("_", 1)[0]
+                if head[:1] == "c" and head[1:].isdigit():
+                    cell_of[gid] = int(head[1:])
+                    break
+        self.cell_of = cell_of
+        self.visible = self.groups < 3  # what the default scene option draws
+        # How far sideways a shadow falls per metre of height: the steepest directional light's.
+        shadowed = model.light_castshadow.astype(bool)
+        directional = model.light_type == mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
+        self.usable = bool((directional | ~shadowed).all()) and not (model.mat_reflectance > 0).any()
+        dirs = model.light_dir[shadowed & directional]
+        self.shadow_slope = max((math.hypot(d[0], d[1]) / max(-d[2], 1e-6) for d in dirs), default=0.0)
+        self._others: dict[int, np.ndarray] = {}
+
+    def out_of_view(self, data: mujoco.MjData, cell: int, camera: str, aspect: float) -> np.ndarray | None:
+        """Ids of the geoms camera ``camera`` of ``cell`` cannot show now, or None when some other
+        cell's geom may be in view (then the whole hall is drawn)."""
+        if not self.usable:
+            return None
+        cam = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        look = -data.cam_xmat[cam].reshape(3, 3)[:, 2]
+        if look[2] > -CAMERA_DOWN_COS:
+            return None
+        others = self._others.get(cell)
+        if others is None:
+            others = self._others[cell] = np.flatnonzero(
+                (self.cell_of >= 0) & (self.cell_of != cell) & self.visible)
+        pos = data.cam_xpos[cam]
+        # The view reaches farthest where it meets the floor: around the point below the camera,
+        # at most its corner half-angle plus its tilt from the vertical.
+        corner = math.atan(math.tan(math.radians(self.model.cam_fovy[cam]) / 2) * math.hypot(1.0, aspect))
+        tilt = math.acos(min(1.0, -float(look[2])))
+        reach = pos[2] * math.tan(min(corner + tilt, math.radians(89.0)))
+        p = data.geom_xpos[others]
+        rb = self.model.geom_rbound[others]
+        gap = np.hypot(p[:, 0] - pos[0], p[:, 1] - pos[1]) - rb \
+            - np.maximum(p[:, 2] + rb, 0.0) * self.shadow_slope
+        if (rb > 0).all() and (gap > reach).all():
+            return others
+        return None
+
+
 class World:
     """All N cells of the hall in one MuJoCo model."""
 
@@ -164,6 +227,7 @@ class World:
             self.data.ctrl[c.act] = HOME_Q
         mujoco.mj_forward(m, self.data)
         self._renderer: Any = None
+        self._view = CellView(m)
         self._loose: tuple[list[tuple[CellState, int]], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._on_belt: np.ndarray | None = None  # dof addresses of the parts the belt carries
         self._check_steps = max(1, CHECK_PERIOD_US // self.dt_us)
@@ -428,15 +492,23 @@ class World:
                 self._renderer.close()
             self._renderer = mujoco.Renderer(self.model, height, width)
         r = self._renderer
-        r.disable_depth_rendering()
-        r.update_scene(self.data, camera=f"c{cell}_{camera}")
-        rgb = r.render().copy()
-        dep = None
-        if depth:
-            r.enable_depth_rendering()
-            r.update_scene(self.data, camera=f"c{cell}_{camera}")
-            dep = r.render().copy()
+        name = f"c{cell}_{camera}"
+        hidden = self._view.out_of_view(self.data, cell, name, width / height)
+        if hidden is not None:
+            self.model.geom_group[hidden] = HIDDEN_GROUP
+        try:
             r.disable_depth_rendering()
+            r.update_scene(self.data, camera=name)
+            rgb = r.render().copy()
+            dep = None
+            if depth:
+                r.enable_depth_rendering()
+                r.update_scene(self.data, camera=name)
+                dep = r.render().copy()
+                r.disable_depth_rendering()
+        finally:
+            if hidden is not None:
+                self.model.geom_group[hidden] = self._view.groups[hidden]
         return rgb, dep
 
     def take_ended(self) -> list[dict[str, Any]]:

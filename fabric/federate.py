@@ -7,6 +7,10 @@ cumulative count of messages it sent per destination and its next event time. Ev
 sends must be delivered at or after the end of the current window; breaking that is a bug and
 fails the federate at once. Each processed and sent event feeds the federate's trace hash.
 
+Several messages for one destination and delivery time may travel as one ``bundle``
+(``send_bundle``, e.g. the packets a cell delivers in one slot); the receiver handles its items one
+by one, in order, exactly as if they had been sent singly.
+
 A message the federate cannot handle (unknown kind, missing field, undecodable bytes) fails it with
 an error naming the federate and the message kind, reported to the coordinator in ``done``.
 
@@ -41,6 +45,7 @@ import msgpack
 from fabric import keys, metrics
 from fabric.bus import Bus
 from fabric.messages import (
+    BUNDLE,
     Advance,
     Done,
     Message,
@@ -261,6 +266,15 @@ class Federate:
             batch.append(raw)
         self._sent_by_plane[plane] += 1
 
+    def send_bundle(self, dst: str, plane: str, t_us: int, items: list[tuple[str, dict[str, Any]]]) -> None:
+        """Send several bodiless-blob messages to ``dst``, all delivered at ``t_us``, as one: the
+        receiver handles them one by one, in this order, as if each had been sent on its own
+        (a cell delivering dozens of packets in one slot pays the per-message cost once)."""
+        if len(items) == 1:
+            self.send(dst, plane, items[0][0], t_us, items[0][1])
+        elif items:
+            self.send(dst, plane, BUNDLE, t_us, {"items": [[kind, body] for kind, body in items]})
+
     def flush_outbox(self) -> None:
         """Publish what was sent since the last flush: one bus message per destination key."""
         for key, raws in self._outbox.items():
@@ -393,14 +407,11 @@ class Federate:
             if kind == _MESSAGE:
                 self._trace.update(b"R")
                 self._trace.update(msgpack.packb([t_us, src, seq, item.kind], use_bin_type=True))
-                try:
-                    self.on_message(item)
-                except (CausalityError, MessageRejected):
-                    raise
-                except Exception as exc:
-                    raise MessageRejected(
-                        f"{self.name}: cannot handle {item.kind!r} message from {src} at {t_us} us: "
-                        f"{type(exc).__name__}: {exc}") from exc
+                if item.kind == BUNDLE:
+                    for part in self._unbundle(item):
+                        self._handle(part)
+                else:
+                    self._handle(item)
             else:
                 fn, args = item
                 self._trace.update(b"E")
@@ -416,6 +427,27 @@ class Federate:
         return Done(federate=self.name, window=adv.window, t_end_us=adv.t_end_us,
                     sent_to=dict(self._sent_to), next_event_us=next_event,
                     earliest_sent_us=self._earliest_sent)
+
+    def _handle(self, msg: Message) -> None:
+        try:
+            self.on_message(msg)
+        except (CausalityError, MessageRejected):
+            raise
+        except Exception as exc:
+            raise MessageRejected(
+                f"{self.name}: cannot handle {msg.kind!r} message from {msg.src} at {msg.t_us} us: "
+                f"{type(exc).__name__}: {exc}") from exc
+
+    def _unbundle(self, bundle: Message) -> list[Message]:
+        """The messages of a bundle (``send_bundle``), in sending order."""
+        items = bundle.body.get("items")
+        if not isinstance(items, list) or not all(
+                isinstance(i, list) and len(i) == 2 and isinstance(i[0], str) and isinstance(i[1], dict)
+                for i in items):
+            raise MessageRejected(f"{self.name}: malformed bundle from {bundle.src} at {bundle.t_us} us: "
+                                  "items must be [kind, body] pairs")
+        return [Message(bundle.t_us, bundle.src, bundle.dst, bundle.seq, bundle.plane, kind, body,
+                        None, bundle.window) for kind, body in items]
 
     def unexpected(self, msg: Message) -> MessageRejected:
         """The error for a message of a kind this federate does not take."""

@@ -67,6 +67,10 @@ class Message:
         return cls(t_us, src, dst, seq, plane, kind, body or {}, blob, window)
 
 
+# The kind of a data message that carries several messages for one destination and delivery
+# time (``Federate.send_bundle``): body ``{"items": [[kind, body], ...]}``, no blob.
+BUNDLE = "bundle"
+
 # A batch: every data message one federate sent to one destination's inbox key in one window,
 # in sending order, as one bus message (the per-message cost of the bus is paid once a window).
 _BATCH = "batch"

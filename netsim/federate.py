@@ -9,6 +9,7 @@ the ``packets`` table as packets are decided: nothing per packet is kept past it
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 from fabric import metrics
@@ -73,28 +74,43 @@ class NetsimFederate(Federate):
                               for fate in ("delivered", "lost", LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET)}
         self.byte_series = {d: metrics.PACKET_BYTES.labels(d) for d in ("ul", "dl")}
         self.latency_series = {d: metrics.PACKET_LATENCY.labels(d) for d in ("ul", "dl")}
+        # Counts go to their series once a slot, not once a packet (tens of thousands a second).
+        self.fates: Counter[tuple[str, str]] = Counter()
+        self.bits_published = dict(self.delivered_bits)
 
     def on_message(self, msg: Message) -> None:
         if msg.kind == "qos_ctl":
             self._lower_layer_qos(msg.body)
             return
-        if msg.kind != "packet":
+        if msg.kind not in ("packet", "packets"):
             raise self.unexpected(msg)
         if msg.t_us % self.slot_us:
-            raise ValueError(f"netsim: packet from {msg.src} enters at {msg.t_us} us, not a slot boundary")
+            raise ValueError(f"netsim: {msg.kind} from {msg.src} enters at {msg.t_us} us, not a slot boundary")
         b = msg.body
         flow = b["flow"]
         pdb = b.get("pdb_us")
         if self.flow_pdb.get(flow, "unset") != pdb:
             self.flow_pdb[flow] = pdb
             self.cell.set_flow_qos(flow, FlowQos(priority=5 if b["dir"] == "dl" else 10, delay_budget_us=pdb))
-        packet = Packet(self.next_packet_id, flow, b["ue"], b["dir"], int(b["size"]), msg.t_us,
-                        ref=(b["dst"], b["app"], msg.blob))
+        if msg.kind == "packet":
+            self._hand_over(flow, b["ue"], b["dir"], int(b["size"]), msg.t_us, (b["dst"], b["app"], msg.blob))
+        else:
+            # The packets of one application message (an abstract loop's frame): the same
+            # flow, entry slot and destination; each delivered with its index in ``app.idx``.
+            if msg.blob is not None:
+                raise ValueError("netsim: a packets message carries no payload bytes (send packet)")
+            for idx, size in enumerate(b["sizes"]):
+                app = dict(b["app"])
+                app["idx"] = idx
+                self._hand_over(flow, b["ue"], b["dir"], int(size), msg.t_us, (b["dst"], app, None))
+        self._ensure_slot(msg.t_us)
+
+    def _hand_over(self, flow: str, ue: str, direction: str, size: int, t_us: int, ref: tuple[Any, ...]) -> None:
+        packet = Packet(self.next_packet_id, flow, ue, direction, size, t_us, ref=ref)  # type: ignore[arg-type]
         self.next_packet_id += 1
         refused = self.cell.enqueue(packet)
         if refused is not None:
             self._record(refused)
-        self._ensure_slot(msg.t_us)
 
     def _lower_layer_qos(self, b: dict[str, Any]) -> None:
         """A loop's QoS signalled to the gNB (``policy.signalling: lower``): the flow's delay budget,
@@ -132,33 +148,58 @@ class NetsimFederate(Federate):
         self.slot_scheduled = None
         if self.now - self.rates_at[0] >= 1_000_000:
             self._publish_rates()
+        # Deliveries without payload bytes go to each destination as one bundle per delivery
+        # time, in the cell's order; one with bytes (a detailed camera's) goes on its own and
+        # first sends what was bundled before it for that destination, which keeps the order.
+        bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]]]] = {}
         for outcome in self.cell.run_slot(self.now):
             self._record(outcome)
             if outcome.deliver_us is not None:
                 dst, app, blob = outcome.packet.ref
                 body = dict(app)
                 body["packet_id"] = outcome.packet.packet_id
+                if blob is None:
+                    bundles.setdefault((dst, outcome.deliver_us), []).append((app["type"], body))
+                    continue
+                for key in [k for k in bundles if k[0] == dst]:
+                    self.send_bundle(dst, "net", key[1], bundles.pop(key))
                 self.send(dst, "net", app["type"], outcome.deliver_us, body, blob)
+        for (dst, deliver_us), items in bundles.items():
+            self.send_bundle(dst, "net", deliver_us, items)
+        self._publish_counts()
         if self.cell.has_pending():
             self._ensure_slot(self.now + self.slot_us)
 
     def _record(self, o: PacketOutcome) -> None:
         p = o.packet
+        d = p.direction
+        latency = None
         if o.deliver_us is None:
-            self.packet_series[p.direction, o.cause or "lost"].inc()
+            self.fates[d, o.cause or "lost"] += 1
         else:
-            self.packet_series[p.direction, "delivered"].inc()
-            self.byte_series[p.direction].inc(p.size_bytes)
-            self.delivered_bits[p.direction] += 8 * p.size_bytes
-            self.latency_series[p.direction].observe((o.deliver_us - p.enqueue_us) / 1e6)
+            self.fates[d, "delivered"] += 1
+            self.delivered_bits[d] += 8 * p.size_bytes
+            latency = o.deliver_us - p.enqueue_us
+            self.latency_series[d].observe(latency / 1e6)
         self.packets.append({
-            "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": p.direction,
+            "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": d,
             "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": o.deliver_us,
-            "latency_us": None if o.deliver_us is None else o.deliver_us - p.enqueue_us,
-            "lost_cause": o.cause,
+            "latency_us": latency, "lost_cause": o.cause,
         })
 
+    def _publish_counts(self) -> None:
+        """Move the packet and byte counts since the last call into the metric series."""
+        for key, n in self.fates.items():
+            if n:
+                self.packet_series[key].inc(n)
+        self.fates.clear()
+        for d, bits in self.delivered_bits.items():
+            if bits > self.bits_published[d]:
+                self.byte_series[d].inc((bits - self.bits_published[d]) // 8)
+                self.bits_published[d] = bits
+
     def finish(self, reason: str) -> dict[str, Any]:
+        self._publish_counts()
         return {"packets": self.packets.rows_written + self.packets.buffered,
                 "model": self.scenario.netsim.model,
                 **_flat(self.cell.stats())}

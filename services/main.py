@@ -29,6 +29,7 @@ from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
 from scenario.schema import ScenarioError, load_scenario
 
 PARENT_PID_ENV = "COSIM5G_PARENT_PID"
+PROFILE_DIR_ENV = "COSIM5G_PROFILE_DIR"  # where each federate writes its cProfile statistics
 ORPHAN_GRACE_S = 3.0  # time to write the last records once the coordinator is gone
 _PR_SET_PDEATHSIG = 1
 
@@ -121,6 +122,21 @@ class Lifeline:
             self.lost(f"the coordinator (pid {expected}) exited before this federate started")
 
 
+def serve_profiled(fed: Federate, profile_dir: str | None) -> int:
+    """Serve ``fed``; with ``profile_dir`` set, under cProfile, its statistics written to
+    ``<profile_dir>/<federate>.pstats`` when it leaves (``benchmarks.speed --profile``)."""
+    if not profile_dir:
+        return fed.serve()
+    import cProfile
+
+    prof = cProfile.Profile()
+    try:
+        return prof.runcall(fed.serve)
+    finally:
+        Path(profile_dir).mkdir(parents=True, exist_ok=True)
+        prof.dump_stats(str(Path(profile_dir) / f"{fed.name}.pstats"))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="services.main", description=__doc__)
     ap.add_argument("role", choices=ROLES)
@@ -150,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     fed = federate_class(args.role)(ctx, bus)
     lifeline.attach(fed)
     try:
-        code = fed.serve()
+        code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))
     except Exception:
         logging.getLogger(args.name).exception("federate failed")
         code = 1

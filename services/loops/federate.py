@@ -116,13 +116,13 @@ class LoopsFederate(Federate):
         packets = split_packets(size, self.scenario.camera.mtu_bytes)
         enter = slot_after(self.now, self.scenario.netsim.slot_us)
         ue = f"camera-{loop}"
-        for idx, psize in enumerate(packets):
-            lp.bytes_sent += psize
-            self.send("netsim", "net", "packet", enter, {
-                "ue": ue, "dir": "ul", "flow": f"{ue}/video", "size": psize, "dst": self.name,
-                "pdb_us": lp.pdb_us,
-                "app": {"type": "aframe", "loop": loop, "frame_id": fid, "idx": idx, "n": len(packets)},
-            })
+        lp.bytes_sent += sum(packets)
+        # One message for the frame's packets: they share the flow, the entry slot and the
+        # destination, and no payload bytes travel for an abstract loop.
+        self.send("netsim", "net", "packets", enter, {
+            "ue": ue, "dir": "ul", "flow": f"{ue}/video", "sizes": packets, "dst": self.name,
+            "pdb_us": lp.pdb_us, "app": {"type": "aframe", "loop": loop, "frame_id": fid, "n": len(packets)},
+        })
 
     # ---- edge side ------------------------------------------------------------------------------
     def _frame_packet(self, lp: AbstractLoop, fid: int, n: int) -> None:

@@ -157,9 +157,9 @@ def netsim_inputs(sc: Scenario) -> list[Input]:
                 "pdb_us": None if k < 3 else 60_000,
                 "app": {"type": "frame", "loop": 0, "frame_id": k, "capture_us": t - 3000, "idx": idx,
                         "n": 12}}, bytes([idx]) * 64))
-        out.append(Input(enter + 2000, "loops", "net", "packet", {
-            "ue": "camera-1", "dir": "ul", "flow": "camera-1/video", "size": 900, "dst": "loops",
-            "pdb_us": None, "app": {"type": "aframe", "loop": 1, "frame_id": k, "idx": 0, "n": 1}}))
+        out.append(Input(enter + 2000, "loops", "net", "packets", {
+            "ue": "camera-1", "dir": "ul", "flow": "camera-1/video", "sizes": [1500, 900], "dst": "loops",
+            "pdb_us": None, "app": {"type": "aframe", "loop": 1, "frame_id": k, "n": 2}}))
         out.append(Input(enter + 9000, "edge", "net", "packet", {
             "ue": "robot-0", "dir": "dl", "flow": "robot-0/pose", "size": 120, "dst": "robot-0",
             "pdb_us": None, "app": {"type": "pose", "loop": 0, "tracks": [], "capture_us": t}}))
@@ -173,9 +173,11 @@ def loops_inputs(sc: Scenario) -> list[Input]:
                     "gripped": False}]
         out.append(Input(t, "physics", "sense", "truth", {"loop": 1, "capture_us": t - 2000,
                                                            "objects": objects}))
-        # Every frame is kept (PDP 1): frame k's single packet arrives 30 ms after capture.
-        out.append(Input(t + 30_000, "netsim", "net", "aframe",
-                         {"type": "aframe", "loop": 1, "frame_id": k, "idx": 0, "n": 1, "packet_id": k}))
+        # Every frame is kept (PDP 1): frame k's two packets arrive 30 ms after capture, in one
+        # bundle as netsim delivers them.
+        out.append(Input(t + 30_000, "netsim", "net", "bundle", {"items": [
+            ["aframe", {"type": "aframe", "loop": 1, "frame_id": k, "idx": idx, "n": 2, "packet_id": 2 * k + idx}]
+            for idx in range(2)]}))
     out += [Input(t + 1000, "physics", "sense", "joint_states",
                   {"t_us": t, "states": {"1": {"q": ARM_Q, "gripped": False}}})
             for t in range(0, END_US, sc.robot.control_period_us)]
@@ -384,6 +386,34 @@ def test_a_message_it_cannot_handle_fails_it_naming_federate_and_kind(case: Case
     assert result.error is not None, f"{case.name} accepted a {fault} message"
     assert case.name in result.error and repr(kind) in result.error, result.error
     assert result.exit_code == 1
+
+
+def test_a_malformed_bundle_fails_it_naming_federate(tmp_path: Path) -> None:
+    loops = next(c for c in CASES if c.name == "loops")
+    bad = Input(W, "netsim", "net", "bundle", {"items": [["aframe"]]})
+    result = drive(loops, tmp_path, arrival_seed=1, jump=False, inputs=[bad])
+    assert result.error is not None and "loops" in result.error and "malformed bundle" in result.error
+    assert result.exit_code == 1
+
+
+def test_netsim_takes_a_frame_as_one_message_and_bundles_deliveries(tmp_path: Path) -> None:
+    """A ``packets`` message enters one packet per size; deliveries without payload bytes reach
+    each destination as one bundle per delivery time, those with bytes one by one."""
+    netsim = next(c for c in CASES if c.name == "netsim")
+    result = drive(netsim, tmp_path, arrival_seed=1, jump=False)
+    assert result.error is None, result.error
+    to_loops = [o for o in result.outputs if o[2] == "loops"]
+    assert to_loops and all(o[5] in ("bundle", "aframe") for o in to_loops)
+    items = [b for o in to_loops for b in ([["aframe", o[6]]] if o[5] == "aframe" else o[6]["items"])]
+    frames: dict[int, list[int]] = {}
+    for kind, body in items:
+        assert kind == "aframe" and body["n"] == 2
+        frames.setdefault(body["frame_id"], []).append(body["idx"])
+    assert frames and all(sorted(ix) == [0, 1] for ix in frames.values()), frames
+    times = [o[0] for o in to_loops]
+    assert len(times) == len(set(times)), "one bundle per destination and delivery time"
+    to_edge = [o for o in result.outputs if o[2] == "edge"]
+    assert to_edge and all(o[5] == "frame" and o[7] for o in to_edge), "payload bytes travel one by one"
 
 
 @pytest.mark.parametrize("case", CASES, ids=str)

@@ -168,3 +168,33 @@ def test_ideal_network_success_over_200_tasks() -> None:
     res = run_ideal(sc)
     assert len(res.tasks) >= 200
     assert res.success_rate >= 0.99, [t for t in res.tasks if not t["success"]]
+
+
+def test_a_cell_camera_draws_the_same_pixels_without_the_cells_it_cannot_see() -> None:
+    """Rendering leaves out the other cells only when none of them (nor its shadow) can be in
+    view: the frames are the same to the bit as the whole hall's, and a neighbour brought into
+    view is drawn."""
+    sc = parse_scenario({"loops": 3, "detailed_loops": 1})
+    world = World(sc)
+    try:
+        w, h = sc.camera.width_px, sc.camera.height_px
+        for at, part in spawn_plan(sc, np.random.default_rng(3), sc.physics_timestep_us)[:3]:
+            world.advance_to(at)
+            world.spawn(0, **part)
+        world.advance_to(world.t_us + 500_000)
+        view = world._view
+        hidden = view.out_of_view(world.data, 0, "c0_camera", w / h)
+        assert hidden is not None and len(hidden) > 0 and set(view.cell_of[hidden]) == {1, 2}
+        rgb, depth = world.render(0, w, h)
+        view.usable = False  # the whole hall, as drawn before
+        rgb_all, depth_all = world.render(0, w, h)
+        assert depth is not None and depth_all is not None
+        assert np.array_equal(rgb, rgb_all) and np.array_equal(depth, depth_all)
+        view.usable = True
+        # A neighbour's part moved under the camera is in view: nothing is left out.
+        part = world.cells[1].obj_qadr[0]
+        world.data.qpos[part:part + 3] = [*world.cells[0].origin[:2], 1.0]
+        mujoco.mj_forward(world.model, world.data)
+        assert view.out_of_view(world.data, 0, "c0_camera", w / h) is None
+    finally:
+        world.close()
