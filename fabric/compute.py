@@ -354,8 +354,7 @@ class ComputeNode:
             # Checked at the first job rather than at start: a window's error reaches the run's
             # reason, a failed start only the federate's log.
             self.quota = self._wall_quota()
-        free_at = self._free_at
-        core = 0 if self.cores == 1 else min(range(self.cores), key=free_at.__getitem__)
+        core = 0 if self.cores == 1 else min(range(self.cores), key=self._free_at.__getitem__)
         start = max(arrival_us, self._free_at[core])
         throttled0 = read_throttled_ns() if self._cgroup_visible else None
         if self.measured:
@@ -486,5 +485,4 @@ class ComputeNode:
     def record_dicts(self) -> list[dict[str, Any]]:
         # Field by field: dataclasses.asdict deep-copies every value, and a node writes thousands
         # of records a simulated second.
-        names = JOB_RECORD_FIELDS
-        return [{n: getattr(r, n) for n in names} for r in self.records]
+        return [{n: getattr(r, n) for n in JOB_RECORD_FIELDS} for r in self.records]

@@ -267,7 +267,7 @@ class Federate:
         self._sent_by_plane[plane] += 1
 
     def send_bundle(self, dst: str, plane: str, t_us: int, items: list[tuple[str, dict[str, Any]]]) -> None:
-        """Send several bodiless-blob messages to ``dst``, all delivered at ``t_us``, as one: the
+        """Send several messages without payload bytes to ``dst``, all delivered at ``t_us``, as one: the
         receiver handles them one by one, in this order, as if each had been sent on its own
         (a cell delivering dozens of packets in one slot pays the per-message cost once)."""
         if len(items) == 1:
