@@ -107,8 +107,16 @@ class TableWriter:
             self.flush()
 
     def extend(self, rows: list[dict[str, Any]]) -> None:
-        for row in rows:
-            self.append(row)
+        """``append`` each row: the same batches (a write at every ``max_rows``), taken a slice
+        at a time rather than a row at a time."""
+        buf = self._rows
+        i, n = 0, len(rows)
+        while i < n:
+            take = min(n - i, self.max_rows - len(buf))
+            buf.extend(rows[i : i + take])
+            i += take
+            if len(buf) >= self.max_rows:
+                self.flush()
 
     def flush(self, upto_us: int | None = None, closing: bool = False) -> None:
         """Write the buffered rows as one batch (nothing when none are buffered), noting that the
@@ -117,15 +125,12 @@ class TableWriter:
             return
         meta = {"upto_us": str(self.clock() if upto_us is None else upto_us)}
         if self._rows:
-            unknown = set().union(*(r.keys() for r in self._rows)) - self._columns
+            unknown = set().union(*self._rows) - self._columns  # iterating a dict: its keys
             if unknown:
                 raise TableError(
                     f"table {self.name}: no column {', '.join(sorted(unknown))} (columns: "
                     f"{', '.join(self.schema.names)}); add it to fabric/tables.py")
-            try:
-                batch = pa.RecordBatch.from_pylist(self._rows, schema=self.schema)
-            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
-                raise TableError(f"table {self.name}: a row does not fit the columns: {exc}") from exc
+            batch = self._batch(self._rows)
             self._writer.write_batch(batch, custom_metadata=meta)
             self.rows_written += batch.num_rows
             self._rows.clear()
@@ -133,6 +138,19 @@ class TableWriter:
             meta["complete"] = "1"
             self._writer.write_batch(pa.RecordBatch.from_pylist([], schema=self.schema),
                                      custom_metadata=meta)
+
+    def _batch(self, rows: list[dict[str, Any]]) -> pa.RecordBatch:
+        """``RecordBatch.from_pylist(rows, schema)``, converted a column at a time (as it does)
+        so that a value that does not fit names its column."""
+        arrays = []
+        for field in self.schema:
+            name = field.name
+            try:
+                arrays.append(pa.array([r.get(name) for r in rows], type=field.type))
+            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+                raise TableError(f"table {self.name}: a row does not fit the columns: column "
+                                 f"{name} ({field.type}): {exc}") from exc
+        return pa.RecordBatch.from_arrays(arrays, schema=self.schema)
 
     def close(self, upto_us: int | None = None) -> None:
         """Write what is buffered, mark the part complete and close the file."""

@@ -8,7 +8,8 @@ sender buffers and is stepped one slot at a time. Implementations: ``netsim.simp
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any, Literal
 
 Direction = Literal["ul", "dl"]
@@ -43,7 +44,6 @@ class PacketOutcome:
     packet: Packet
     deliver_us: int | None
     cause: str | None = None
-    info: dict[str, Any] = field(default_factory=dict)
 
     @property
     def delivered(self) -> bool:
@@ -70,6 +70,15 @@ class Cell(ABC):
     @abstractmethod
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
         """Put a packet in its sender buffer; returns an outcome at once if it is refused."""
+
+    def enqueue_many(self, packets: Iterable[Packet]) -> list[PacketOutcome]:
+        """``enqueue`` each packet in order; the outcomes of those refused at once."""
+        refused = []
+        for packet in packets:
+            outcome = self.enqueue(packet)
+            if outcome is not None:
+                refused.append(outcome)
+        return refused
 
     @abstractmethod
     def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:

@@ -9,11 +9,12 @@ the ``packets`` table as packets are decided: nothing per packet is kept past it
 
 from __future__ import annotations
 
+from bisect import bisect_left
 from collections import Counter
 from typing import Any
 
 from fabric import metrics
-from fabric.federate import Federate
+from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
 from netsim.cell import (
     LOSS_BUFFER,
@@ -55,6 +56,14 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _observe_many(histogram: Any, value: float, count: int) -> None:
+    """``count`` observations of ``value`` in a prometheus_client Histogram, which has no bulk
+    observe: its sum and the bucket ``observe`` would pick (the first bound >= value), updated
+    once."""
+    histogram._sum.inc(value * count)
+    histogram._buckets[bisect_left(histogram._upper_bounds, value)].inc(count)
+
+
 class NetsimFederate(Federate):
     role = "netsim"
 
@@ -77,6 +86,13 @@ class NetsimFederate(Federate):
         # Counts go to their series once a slot, not once a packet (tens of thousands a second).
         self.fates: Counter[tuple[str, str]] = Counter()
         self.bits_published = dict(self.delivered_bits)
+        # Packets in the cell for a federate outside this one's group (``external_horizon_us``).
+        self.outside_in_cell = 0
+
+    def external_horizon_us(self) -> int | None:
+        # Deliveries are its only messages: while the cell holds none for a federate outside the
+        # group (the abstract loops' packets go back to their group), it sends nothing out.
+        return self.now if self.outside_in_cell else NEVER_US
 
     def on_message(self, msg: Message) -> None:
         if msg.kind == "qos_ctl":
@@ -92,25 +108,26 @@ class NetsimFederate(Federate):
         if self.flow_pdb.get(flow, "unset") != pdb:
             self.flow_pdb[flow] = pdb
             self.cell.set_flow_qos(flow, FlowQos(priority=5 if b["dir"] == "dl" else 10, delay_budget_us=pdb))
+        ue, direction, t_us, dst, app = b["ue"], b["dir"], msg.t_us, b["dst"], b["app"]
+        pid = self.next_packet_id
+        # A packet's ref: (destination, application record, payload bytes, index in its
+        # message or None); the delivered message's body is built from it at delivery.
         if msg.kind == "packet":
-            self._hand_over(flow, b["ue"], b["dir"], int(b["size"]), msg.t_us, (b["dst"], b["app"], msg.blob))
+            packets = [Packet(pid, flow, ue, direction, int(b["size"]), t_us, (dst, app, msg.blob, None))]
         else:
             # The packets of one application message (an abstract loop's frame): the same
             # flow, entry slot and destination; each delivered with its index in ``app.idx``.
             if msg.blob is not None:
                 raise ValueError("netsim: a packets message carries no payload bytes (send packet)")
-            for idx, size in enumerate(b["sizes"]):
-                app = dict(b["app"])
-                app["idx"] = idx
-                self._hand_over(flow, b["ue"], b["dir"], int(size), msg.t_us, (b["dst"], app, None))
-        self._ensure_slot(msg.t_us)
-
-    def _hand_over(self, flow: str, ue: str, direction: str, size: int, t_us: int, ref: tuple[Any, ...]) -> None:
-        packet = Packet(self.next_packet_id, flow, ue, direction, size, t_us, ref=ref)  # type: ignore[arg-type]
-        self.next_packet_id += 1
-        refused = self.cell.enqueue(packet)
-        if refused is not None:
+            packets = [Packet(pid + idx, flow, ue, direction, int(size), t_us, (dst, app, None, idx))
+                       for idx, size in enumerate(b["sizes"])]
+        self.next_packet_id = pid + len(packets)
+        refused = self.cell.enqueue_many(packets)
+        if refused:
             self._record(refused)
+        if dst not in self.cohosted:
+            self.outside_in_cell += len(packets) - len(refused)
+        self._ensure_slot(msg.t_us)
 
     def _lower_layer_qos(self, b: dict[str, Any]) -> None:
         """A loop's QoS signalled to the gNB (``policy.signalling: lower``): the flow's delay budget,
@@ -152,11 +169,16 @@ class NetsimFederate(Federate):
         # time, in the cell's order; one with bytes (a detailed camera's) goes on its own and
         # first sends what was bundled before it for that destination, which keeps the order.
         bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]]]] = {}
-        for outcome in self.cell.run_slot(self.now):
-            self._record(outcome)
+        outcomes = self.cell.run_slot(self.now)
+        self._record(outcomes)
+        if self.outside_in_cell:
+            self.outside_in_cell -= sum(o.packet.ref[0] not in self.cohosted for o in outcomes)
+        for outcome in outcomes:
             if outcome.deliver_us is not None:
-                dst, app, blob = outcome.packet.ref
+                dst, app, blob, idx = outcome.packet.ref
                 body = dict(app)
+                if idx is not None:
+                    body["idx"] = idx
                 body["packet_id"] = outcome.packet.packet_id
                 if blob is None:
                     bundles.setdefault((dst, outcome.deliver_us), []).append((app["type"], body))
@@ -170,22 +192,36 @@ class NetsimFederate(Federate):
         if self.cell.has_pending():
             self._ensure_slot(self.now + self.slot_us)
 
-    def _record(self, o: PacketOutcome) -> None:
-        p = o.packet
-        d = p.direction
-        latency = None
-        if o.deliver_us is None:
-            self.fates[d, o.cause or "lost"] += 1
-        else:
-            self.fates[d, "delivered"] += 1
-            self.delivered_bits[d] += 8 * p.size_bytes
-            latency = o.deliver_us - p.enqueue_us
-            self.latency_series[d].observe(latency / 1e6)
-        self.packets.append({
-            "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": d,
-            "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": o.deliver_us,
-            "latency_us": latency, "lost_cause": o.cause,
-        })
+    def _record(self, outcomes: list[PacketOutcome]) -> None:
+        """Count and record the fates of ``outcomes``. Latencies are slot multiples, so the
+        histogram gets each distinct value once with its count rather than once a packet."""
+        fates = self.fates
+        bits = self.delivered_bits
+        latencies: dict[str, Counter[int]] = {"ul": Counter(), "dl": Counter()}
+        rows: list[dict[str, Any]] = []
+        append = rows.append
+        for o in outcomes:
+            p = o.packet
+            d = p.direction
+            deliver_us = o.deliver_us
+            if deliver_us is None:
+                fates[d, o.cause or "lost"] += 1
+                latency = None
+            else:
+                bits[d] += 8 * p.size_bytes
+                latency = deliver_us - p.enqueue_us
+                latencies[d][latency] += 1
+            append({
+                "packet_id": p.packet_id, "flow": p.flow, "ue": p.ue, "dir": d,
+                "size_bytes": p.size_bytes, "enqueue_us": p.enqueue_us, "deliver_us": deliver_us,
+                "latency_us": latency, "lost_cause": o.cause,
+            })
+        self.packets.extend(rows)  # the batches of row-by-row appends, one call a slot
+        for link, counts in latencies.items():
+            if counts:
+                fates[link, "delivered"] += counts.total()
+                for latency, n in counts.items():
+                    _observe_many(self.latency_series[link], latency / 1e6, n)
 
     def _publish_counts(self) -> None:
         """Move the packet and byte counts since the last call into the metric series."""

@@ -113,11 +113,9 @@ def run_uplink_cameras(n_ues: int, rate_mbps: float, duration_s: float, *,
         while frames and frames[0][0] <= t:
             enq, i, k, phase = heapq.heappop(frames)
             ue = ue_ids[i]
-            for size in sizes:
-                packet_id += 1
-                outcome = cell.enqueue(Packet(packet_id, ue, ue, "ul", size, enq))
-                if outcome is not None:
-                    refused.append(outcome)
+            refused += cell.enqueue_many([Packet(packet_id + k, ue, ue, "ul", size, enq)
+                                          for k, size in enumerate(sizes, 1)])
+            packet_id += len(sizes)
             capture = phase + int((k + 1) * period_us)
             heapq.heappush(frames, (-(-capture // slot_us) * slot_us, i, k + 1, phase))
         c1 = time.perf_counter()

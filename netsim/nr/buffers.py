@@ -95,29 +95,39 @@ class SenderBuffer:
     def fill(self, payload_bytes: int) -> list[Segment]:
         """Take up to ``payload_bytes`` (headers included) from the head of the flows."""
         segments: list[Segment] = []
+        append = segments.append
         room = payload_bytes
         h = self.header_bytes
+        taken_total = 0
+        finished = 0  # packets whose last byte was taken
         for fq in self.flows:
             if not fq.bytes:
                 continue
             q = fq.entries
+            taken = 0
+            # The counters are written back once per flow: the same totals, fewer attribute
+            # updates on the per-packet path.
             while q and room > h:
                 e = q[0]
-                if e.to_send == 0:  # discarded or lost while queued, removed lazily
+                to_send = e.to_send
+                if to_send == 0:  # discarded or lost while queued, removed lazily
                     q.popleft()
                     continue
                 take = room - h
-                if take >= e.to_send:
-                    take = e.to_send
+                if take >= to_send:
+                    take = to_send
                     q.popleft()
-                    self.packets -= 1
-                e.to_send -= take
-                fq.bytes -= take
-                self.bytes -= take
+                    finished += 1
+                e.to_send = to_send - take
+                taken += take
                 room -= take + h
-                segments.append((e, take))
+                append((e, take))
+            fq.bytes -= taken
+            taken_total += taken
             if room <= h:
                 break
+        self.bytes -= taken_total
+        self.packets -= finished
         return segments
 
     def drop_unsent(self, entry: PacketEntry, flow_name: str) -> None:

@@ -26,8 +26,9 @@ from __future__ import annotations
 import heapq
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
-from itertools import repeat
+from collections.abc import Iterable, Mapping, Sequence
+from itertools import groupby, repeat
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -51,6 +52,9 @@ from netsim.nr.scheduler import make_scheduler
 from scenario.nr import NrConfig
 
 DEFAULT_QOS = FlowQos()
+_RUN_KEY = attrgetter("ue", "flow", "direction")
+_SIZE = attrgetter("size_bytes")
+_ENQUEUE_US = attrgetter("enqueue_us")
 POWER_LIMIT_MARGIN_DB = 3.0  # SNR per PRB kept above the MCS-0 threshold by this much
 
 
@@ -222,59 +226,101 @@ class NrCell(Cell):
 
     # ------------------------------------------------------------------ interface
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
-        u = self._index.get(packet.ue)
-        if u is None:
-            raise ValueError(f"packet {packet.packet_id}: unknown UE {packet.ue!r}")
-        direction = packet.direction
-        if direction == "ul":
-            ul = True
-            buf = self._ul_buf[u]
-        elif direction == "dl":
-            ul = False
-            buf = self._dl_buf[u]
-        else:
-            raise ValueError(f"packet {packet.packet_id}: direction {direction!r} is not "
-                             "'ul' or 'dl'")
-        size = packet.size_bytes
-        if size <= 0:
-            raise ValueError(f"packet {packet.packet_id}: size_bytes={size} must be > 0")
+        refused = self.enqueue_many((packet,))
+        return refused[0] if refused else None
+
+    def enqueue_many(self, packets: Iterable[Packet]) -> list[PacketOutcome]:
+        """``enqueue`` each packet in order; the outcomes of those refused at once.
+
+        This runs once per IP packet and dominates the cost of a loaded cell. Packets come in
+        runs that share UE, flow and direction (a frame's): a run that joins its non-empty UL
+        queue whole (no delay budget, every packet fits, none staged) is appended in one go;
+        any other run goes packet by packet through ``_enqueue_each``.
+        """
+        refused: list[PacketOutcome] = []
+        for (ue, flow, direction), run in groupby(packets, _RUN_KEY):
+            run_list = list(run)
+            if not (direction == "ul" and self._append_run(run_list, ue, flow)):
+                self._enqueue_each(run_list, refused)
+        return refused
+
+    def _append_run(self, run: list[Packet], ue: str, flow: str) -> bool:
+        """Append a run of UL packets of one UE and flow to its non-empty queue, if the packets
+        would all be taken that way one by one (then True); else change nothing (False)."""
+        qos = self._qos.get(flow, DEFAULT_QOS)
+        u = self._index.get(ue, -1)
+        if u < 0 or qos.delay_budget_us is not None or self._staged:
+            return False
+        buf = self._ul_buf[u]
         queued = buf.bytes
-        staged = 0
-        if self._staged:
-            staged = sum(e.to_send for _, _, e, su, sul in self._staged if su == u and sul == ul)
-        if queued + staged + size > buf.limit_bytes:
-            self._lost[LOSS_BUFFER] += 1
-            return PacketOutcome(packet, None, LOSS_BUFFER)
-        qos = self._qos.get(packet.flow)
-        if qos is None:
-            entry = PacketEntry(packet, None)
-            priority = DEFAULT_QOS.priority
-        else:
-            budget = qos.delay_budget_us
-            entry = PacketEntry(packet, None if budget is None else packet.enqueue_us + budget)
-            priority = qos.priority
+        fq = buf.by_name.get(flow)
+        if not queued or fq is None or fq.priority != qos.priority:
+            return False
+        sizes = list(map(_SIZE, run))
+        total = sum(sizes)
         nxt = self._next_slot_us
-        if nxt is not None and packet.enqueue_us > nxt:
-            # Enters at a later slot boundary than the next slot: hold it until then.
-            slot = self.slot_us
-            self._seq += 1
-            heapq.heappush(self._staged, (-(-packet.enqueue_us // slot) * slot, self._seq,
-                                          entry, u, ul))
-            return None
-        # Fast path of _admit for the common case (an UL packet of a known flow, no budget):
-        # enqueue runs once per IP packet and dominates the cost of a loaded cell.
-        if ul and entry.deadline_us is None and queued:
-            fq = buf.by_name.get(packet.flow)
-            if fq is not None and fq.priority == priority:
-                fq.entries.append(entry)
-                fq.bytes += size
-                buf.bytes = queued = queued + size
-                buf.packets += 1
-                if queued > self._ul_peak[u]:
-                    self._ul_peak[u] = queued
-                return None
-        self._admit(entry, u, ul, priority)
-        return None
+        if (min(sizes) <= 0 or queued + total > buf.limit_bytes
+                or (nxt is not None and max(map(_ENQUEUE_US, run)) > nxt)):
+            return False
+        fq.entries.extend(map(PacketEntry, run, repeat(None)))
+        fq.bytes += total
+        buf.bytes = queued = queued + total
+        buf.packets += len(run)
+        # The occupancy only grows along the run: its peak is the final one.
+        if queued > self._ul_peak[u]:
+            self._ul_peak[u] = queued
+        return True
+
+    def _enqueue_each(self, packets: Iterable[Packet], refused: list[PacketOutcome]) -> None:
+        """``enqueue`` each packet, adding the refused ones' outcomes to ``refused``. The common
+        case (an UL packet of a flow without delay budget, joining its non-empty queue at the
+        next slot) is inlined, with the UE and flow looked up once per run of packets that
+        share them; anything else takes ``_enqueue``."""
+        nxt = self._next_slot_us
+        ue = flow = direction = None
+        fast = False
+        u = 0
+        buf = self._ul_buf[0]
+        limit = buf.limit_bytes
+        fq = None  # the run's flow queue once it has been checked usable
+        peak = self._ul_peak
+        priority = DEFAULT_QOS.priority
+        for packet in packets:
+            if packet.ue != ue or packet.flow != flow or packet.direction != direction:
+                ue, flow, direction = packet.ue, packet.flow, packet.direction
+                qos = self._qos.get(flow, DEFAULT_QOS)
+                priority = qos.priority
+                u = self._index.get(ue, -1)
+                fast = direction == "ul" and u >= 0 and qos.delay_budget_us is None
+                fq = None
+                if fast:
+                    buf = self._ul_buf[u]
+                    limit = buf.limit_bytes
+            size = packet.size_bytes
+            if (not fast or size <= 0 or self._staged
+                    or (nxt is not None and packet.enqueue_us > nxt)):
+                outcome = self._enqueue(packet)
+                if outcome is not None:
+                    refused.append(outcome)
+                fq = None
+                continue
+            queued = buf.bytes
+            if queued + size > limit:
+                self._lost[LOSS_BUFFER] += 1
+                refused.append(PacketOutcome(packet, None, LOSS_BUFFER))
+                continue
+            if fq is None or not queued:
+                fq = buf.by_name.get(flow)
+                if not queued or fq is None or fq.priority != priority:
+                    self._admit(PacketEntry(packet, None), u, True, priority)
+                    fq = None
+                    continue
+            fq.entries.append(PacketEntry(packet, None))
+            fq.bytes += size
+            buf.bytes = queued = queued + size
+            buf.packets += 1
+            if queued > peak[u]:
+                peak[u] = queued
 
     def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
         slot_us = self.slot_us
@@ -416,6 +462,44 @@ class NrCell(Cell):
             raise ValueError(
                 f"{what}={p!r} is outside the hall [0, {cfg.hall_length_m:g}] x "
                 f"[0, {cfg.hall_width_m:g}] x [0, {cfg.hall_height_m:g}] m (hall_*_m fields)")
+
+    def _enqueue(self, packet: Packet) -> PacketOutcome | None:
+        """``enqueue`` of one packet, every case: validation, buffer limit, staging, admission."""
+        u = self._index.get(packet.ue)
+        if u is None:
+            raise ValueError(f"packet {packet.packet_id}: unknown UE {packet.ue!r}")
+        direction = packet.direction
+        if direction == "ul":
+            ul = True
+            buf = self._ul_buf[u]
+        elif direction == "dl":
+            ul = False
+            buf = self._dl_buf[u]
+        else:
+            raise ValueError(f"packet {packet.packet_id}: direction {direction!r} is not "
+                             "'ul' or 'dl'")
+        size = packet.size_bytes
+        if size <= 0:
+            raise ValueError(f"packet {packet.packet_id}: size_bytes={size} must be > 0")
+        staged = 0
+        if self._staged:
+            staged = sum(e.to_send for _, _, e, su, sul in self._staged if su == u and sul == ul)
+        if buf.bytes + staged + size > buf.limit_bytes:
+            self._lost[LOSS_BUFFER] += 1
+            return PacketOutcome(packet, None, LOSS_BUFFER)
+        qos = self._qos.get(packet.flow, DEFAULT_QOS)
+        budget = qos.delay_budget_us
+        entry = PacketEntry(packet, None if budget is None else packet.enqueue_us + budget)
+        nxt = self._next_slot_us
+        if nxt is not None and packet.enqueue_us > nxt:
+            # Enters at a later slot boundary than the next slot: hold it until then.
+            slot = self.slot_us
+            self._seq += 1
+            heapq.heappush(self._staged, (-(-packet.enqueue_us // slot) * slot, self._seq,
+                                          entry, u, ul))
+            return None
+        self._admit(entry, u, ul, qos.priority)
+        return None
 
     def _admit(self, entry: PacketEntry, u: int, ul: bool, priority: int) -> None:
         pkt = entry.packet
@@ -568,7 +652,7 @@ class NrCell(Cell):
             candidates = [u for u in self._ul_known if u not in taken and busy[u] < n_proc]
             gnb_bytes = self._gnb_ul_bytes
             extra = 8 * cfg.bsr_bytes
-            for u in self._sched_ul.order(candidates, self._ul_prio, self._rate_ul, s, self._urgency):
+            for u in self._sched_ul.ranked(candidates, self._ul_prio, self._rate_ul, s, self._urgency):
                 if count >= max_ues or pos >= n_prb:
                     break
                 from_sr = gnb_bytes[u] == 0
@@ -650,7 +734,8 @@ class NrCell(Cell):
                 buf = self._ul_buf[u]
                 if g.configured and not (buf.bytes and harq.busy[u] < harq.n_processes):
                     continue  # unused configured-grant occasion
-                segments = buf.fill(g.payload_bytes) if buf.bytes else []
+                queued = buf.bytes
+                segments = buf.fill(g.payload_bytes) if queued else []
                 # The BSR rides with the PUSCH: the gNB now knows the rest of the buffer.
                 self._sr_candidates.discard(u)
                 known = buf.report_bytes() - self._ue_grant_bytes[u]
@@ -666,8 +751,9 @@ class NrCell(Cell):
                     continue
                 if g.configured:
                     harq.busy[u] += 1
+                # fill takes exactly the bytes it puts in segments out of the buffer.
                 tb = TransportBlock(u, segments, g.tbs_bits, g.mcs, g.n_prb, g.cbs_bits, g.n_cb,
-                                    sum(nb for _, nb in segments))
+                                    queued - buf.bytes)
             elif g.missed:
                 self._pdcch_missed += 1
                 tb.tx_count += 1
@@ -800,7 +886,7 @@ class NrCell(Cell):
             elif u not in taken and busy[u] < n_proc:
                 candidates.append(u)
         la = self._la_dl
-        for u in self._sched_dl.order(candidates, self._dl_prio, self._rate_dl, s, self._urgency):
+        for u in self._sched_dl.ranked(candidates, self._dl_prio, self._rate_dl, s, self._urgency):
             if count >= max_ues or pos >= n_prb:
                 break
             buf = self._dl_buf[u]
@@ -810,6 +896,7 @@ class NrCell(Cell):
             mcs = la.select(u, est, n, self._dl_re)
             la.last_mcs[u] = mcs
             fmt = self.phy.tb_format(n, mcs, self._dl_re)
+            queued = buf.bytes
             segments = buf.fill(fmt.tbs_bits // 8)
             self._dl_prio[u] = buf.best_priority()
             if not buf.bytes:
@@ -817,7 +904,7 @@ class NrCell(Cell):
             if not segments:
                 continue
             tb = TransportBlock(u, segments, fmt.tbs_bits, mcs, n, fmt.cbs_bits, fmt.n_cb,
-                                sum(nb for _, nb in segments))
+                                queued - buf.bytes)
             busy[u] += 1
             self._sched_dl.served(u, fmt.tbs_bits, s)
             self._dl_transmit(s, tb, pos)
@@ -870,16 +957,18 @@ class NrCell(Cell):
         """The receiver decoded ``tb``: packets whose last missing bytes it carries arrive."""
         end = self._slot_end_us
         out = self._out
+        append = out.append
+        n_out = len(out)
         delivered = 0
-        done = 0
         for e, nb in tb.segments:
             if e.lost:
                 continue
             delivered += nb
-            e.undelivered -= nb
-            if not e.undelivered:
-                out.append(PacketOutcome(e.packet, end))
-                done += 1
+            left = e.undelivered - nb
+            e.undelivered = left
+            if not left:
+                append(PacketOutcome(e.packet, end))
+        done = len(out) - n_out
         if ul:
             self._ul_bytes[tb.ue] += delivered
             self._delivered["ul"] += done

@@ -183,6 +183,8 @@ class BlerTable:
         # Python lists index faster than numpy scalars in the per-TB hot path.
         self._rows = grid.tolist()
         self._n_snr = n_snr
+        # Grid position per code-block size: a TB's few sizes recur in every slot.
+        self._cbs_pos: dict[float, tuple[int, float]] = {}
         self.n_mcs = n_mcs
         self.t10_db_2000 = tuple(raw["t10_db_at_2000_bits"])
 
@@ -195,20 +197,27 @@ class BlerTable:
             return 0.0
         i = int(x)
         fx = x - i
-        lk = self._log_cbs
-        lc = math.log(cbs_bits)
-        if lc <= lk[0]:
-            j, fk = 0, 0.0
-        elif lc >= lk[-1]:
-            j, fk = len(lk) - 2, 1.0
-        else:
-            j = bisect.bisect_right(lk, lc) - 1
-            fk = (lc - lk[j]) / (lk[j + 1] - lk[j])
+        pos = self._cbs_pos.get(cbs_bits)
+        if pos is None:
+            pos = self._cbs_pos[cbs_bits] = self._cbs_position(cbs_bits)
+        j, fk = pos
         rows = self._rows[mcs]
         lo, hi = rows[j], rows[j + 1]
         a = lo[i] + fx * (lo[i + 1] - lo[i])
         b = hi[i] + fx * (hi[i + 1] - hi[i])
         return a + fk * (b - a)
+
+    def _cbs_position(self, cbs_bits: float) -> tuple[int, float]:
+        """Where ``cbs_bits`` falls on the code-block size grid: the lower neighbour's index and
+        the fraction of the way (in log size) to the next one, clamped at the ends."""
+        lk = self._log_cbs
+        lc = math.log(cbs_bits)
+        if lc <= lk[0]:
+            return 0, 0.0
+        if lc >= lk[-1]:
+            return len(lk) - 2, 1.0
+        j = bisect.bisect_right(lk, lc) - 1
+        return j, (lc - lk[j]) / (lk[j + 1] - lk[j])
 
     def cb_bler_threshold_db(self, mcs: int, cbs_bits: float, bler: float = 0.1) -> float:
         """SNR (dB) at which one code block of ``cbs_bits`` bits reaches ``bler`` (bisection;

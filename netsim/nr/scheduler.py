@@ -9,8 +9,9 @@ orders UEs of equal priority. Ties break on the UE index, so ranking is determin
 
 from __future__ import annotations
 
+import heapq
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Literal
 
 SchedulerKind = Literal["pf", "rr", "max_rate"]
@@ -29,6 +30,13 @@ class Scheduler(ABC):
         first), ``rate[u]`` its achievable rate estimate (bits per PRB), ``urgency[u]`` the
         weight of its dynamic delay budget (None: all 1)."""
 
+    def ranked(self, candidates: Sequence[int], priority: Sequence[int],
+               rate: Sequence[float], slot: int,
+               urgency: Sequence[float] | None = None) -> Iterator[int]:
+        """``order`` as an iterator (the ranking is fixed when this is called): the cell
+        usually takes only the first UE or two, so a policy may rank lazily."""
+        return iter(self.order(candidates, priority, rate, slot, urgency))
+
     def served(self, ue: int, bits: int, slot: int) -> None:  # noqa: B027 - optional hook
         """UE ``ue`` got a new transmission of ``bits`` in ``slot``."""
 
@@ -46,31 +54,74 @@ class ProportionalFair(Scheduler):
         self.beta = forgetting_factor
         self.avg_bits = [0.0] * n_ue
         self.avg_slot = [0] * n_ue
+        # beta**k for the decay gaps seen most (the same float as computing it each time).
+        self._powers = [forgetting_factor**k for k in range(256)]
 
     def average(self, ue: int, slot: int) -> float:
         """T_u(slot - 1), the average served bits per slot before ``slot``."""
         return self.avg_bits[ue] * self.beta ** max(0, slot - 1 - self.avg_slot[ue])
 
-    def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+    def _metrics(self, candidates: Sequence[int], rate: Sequence[float], slot: int,
+                 urgency: Sequence[float] | None) -> list[float]:
+        """-w r / T per candidate (lower is served first within a priority class)."""
         # Inlined loop rather than a sort key function: this runs every slot for every
         # backlogged UE and is the scheduler's whole cost.
-        beta = self.beta
         avg, last = self.avg_bits, self.avg_slot
+        powers = self._powers
+        n_powers = len(powers)
         prev = slot - 1
-        keyed = []
+        metrics: list[float] = []
+        append = metrics.append
         for u in candidates:
             t = avg[u]
             w = 1.0 if urgency is None else urgency[u]
             if t > 1e-9:
                 k = prev - last[u]
                 if k > 0:
-                    t *= beta**k
-                keyed.append((priority[u], -w * rate[u] / t, u))
+                    t *= powers[k] if k < n_powers else self.beta**k
+                # -1.0 * r is exactly -r: the common unweighted case skips the product.
+                append((-rate[u] if w == 1.0 else -w * rate[u]) / t)
             else:  # never served (T = 0): first within its priority class, the urgent first
-                keyed.append((priority[u], -1e300 * w, u))
-        keyed.sort()
+                append(-1e300 * w)
+        return metrics
+
+    def order(self, candidates: Sequence[int], priority: Sequence[int],
+              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+        metrics = self._metrics(candidates, rate, slot, urgency)
+        keyed = sorted(zip([priority[u] for u in candidates], metrics, candidates, strict=True))
         return [k[2] for k in keyed]
+
+    def ranked(self, candidates: Sequence[int], priority: Sequence[int],
+               rate: Sequence[float], slot: int,
+               urgency: Sequence[float] | None = None) -> Iterator[int]:
+        """``order``, taken lazily: the cell rarely serves more than a UE or two a slot.
+
+        The order is that of the keys (priority, metric, UE), all distinct. With one priority
+        class (the usual case) the next UE is the smallest metric, the lowest UE among equal
+        ones: found by C-level min and index on floats rather than by comparing tuples."""
+        metrics = self._metrics(candidates, rate, slot, urgency)
+        prios = [priority[u] for u in candidates]
+        if prios and min(prios) == max(prios):
+            return self._pop_best(list(candidates), metrics)
+        keyed = list(zip(prios, metrics, candidates, strict=True))
+        heapq.heapify(keyed)
+        return self._pop_all(keyed)
+
+    @staticmethod
+    def _pop_all(heap: list[tuple[int, float, int]]) -> Iterator[int]:
+        pop = heapq.heappop
+        while heap:
+            yield pop(heap)[2]
+
+    @staticmethod
+    def _pop_best(ues: list[int], metrics: list[float]) -> Iterator[int]:
+        while metrics:
+            best = min(metrics)
+            i = metrics.index(best)
+            if metrics.count(best) > 1:  # a tie (equal metrics): the lowest UE index first
+                i = min((j for j, m in enumerate(metrics) if m == best), key=ues.__getitem__)
+            yield ues[i]
+            del metrics[i], ues[i]
 
     def served(self, ue: int, bits: int, slot: int) -> None:
         self.avg_bits[ue] = self.beta * self.average(ue, slot) + (1 - self.beta) * bits

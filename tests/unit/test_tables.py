@@ -8,6 +8,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -67,6 +68,35 @@ def test_a_part_cut_short_keeps_every_whole_batch(tmp_path: Path) -> None:
     assert not info.complete and info.error and "cut short after 10 rows" in info.error
 
 
+def test_extend_writes_the_batches_repeated_appends_write(tmp_path: Path) -> None:
+    def batches(path: Path) -> list[list[int]]:
+        return [[r["packet_id"] for r in b.to_pylist()] for b in read_part(path)]
+
+    one = TableWriter(tmp_path / "one.arrows", PACKETS, "packets", lambda: 0, max_rows=4)
+    many = TableWriter(tmp_path / "many.arrows", PACKETS, "packets", lambda: 0, max_rows=4)
+    for chunk in ([0, 1], [2, 3, 4, 5, 6, 7, 8, 9, 10], [], [11], [12, 13, 14]):
+        for i in chunk:
+            one.append(packet(i))
+        many.extend([packet(i) for i in chunk])
+        assert many.buffered == one.buffered < 4 and many.rows_written == one.rows_written
+    one.close()
+    many.close()
+    assert batches(many.path) == batches(one.path) == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11],
+                                                      [12, 13, 14]]
+
+
+def test_a_batch_is_the_one_from_pylist_builds(tmp_path: Path) -> None:
+    rows = [packet(i, lost=i % 2 == 0) for i in range(7)]
+    rows[3] = {k: v for k, v in rows[3].items() if k != "lost_cause"}  # a missing key is null
+    w = TableWriter(tmp_path / "p.arrows", PACKETS, "packets", lambda: 0)
+    w.extend(rows)
+    w.close()
+    written = [b for b in read_part(w.path) if b.num_rows]
+    assert len(written) == 1
+    expected = pa.RecordBatch.from_pylist(rows, schema=PACKETS)
+    assert written[0].schema == expected.schema and written[0].equals(expected)
+
+
 def test_a_row_with_an_unknown_column_names_the_table_and_column(tmp_path: Path) -> None:
     w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: 0)
     w.append({**packet(0), "jitter_us": 4})
@@ -74,7 +104,8 @@ def test_a_row_with_an_unknown_column_names_the_table_and_column(tmp_path: Path)
         w.flush()
     w = TableWriter(part_path(tmp_path, "packets", "edge"), PACKETS, "packets", lambda: 0)
     w.append({**packet(1), "size_bytes": "large"})
-    with pytest.raises(TableError, match="table packets: a row does not fit"):
+    with pytest.raises(TableError, match="table packets: a row does not fit the columns: column "
+                       "size_bytes"):
         w.flush()
 
 
