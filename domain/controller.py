@@ -74,12 +74,17 @@ class Track:
 
 
 class PickController:
-    """One arm's controller; ``step`` is called every control period."""
+    """One arm's controller; ``step`` is called every control period.
+
+    ``step`` is ``plan`` (the state machine and the cup setpoint), the IK of the setpoint, then
+    ``command`` (joint targets from the IK solution). Whoever drives many arms calls the three
+    itself, to solve the IK of all arms in one ``ArmKinematics.solve_many``."""
 
     def __init__(self, cfg: RobotConfig, object_size_m: float, servo_lag_s: float) -> None:
         self.cfg = cfg
         self.half = object_size_m / 2
         self.object_size = object_size_m
+        self.hover = np.array([0.0, 0.0, self.half + HOVER_M])  # cup over a part's centre
         self.servo_lag_s = servo_lag_s
         self.dt = cfg.control_period_us / 1e6
         # A command reaches the drives after the actuation latency and holds for one period: the
@@ -158,7 +163,7 @@ class PickController:
             p = self.predict(tr, now + self.lead_us)
             if p[2] > g.BELT_TOP_Z + 3 * self.half or abs(p[1]) > g.BELT_HALF_WIDTH:
                 continue  # lifted already, or not on the belt
-            hover = p + np.array([0.0, 0.0, self.half + HOVER_M])
+            hover = p + self.hover
             t_grasp = norm(hover - self.p_sp) / APPROACH_SPEED_M_S + GRASP_TIME_S
             if max(p[0], g.PICK_X_RANGE[0]) + tr.v[0] * t_grasp > g.PICK_X_RANGE[1]:
                 continue  # would leave the window before the grip
@@ -172,16 +177,16 @@ class PickController:
         t = now + self.lead_us
         aim = self.predict(track, t)
         for _ in range(2):  # time to get there, at the planning speed, then where the part is
-            hover = aim + np.array([0.0, 0.0, self.half + HOVER_M])
+            hover = aim + self.hover
             eta_us = int(norm(hover - self.p_sp) / APPROACH_SPEED_M_S * 1e6)
             aim = self.predict(track, t + eta_us)
-        goal = aim + np.array([0.0, 0.0, self.half + HOVER_M])
+        goal = aim + self.hover
         vel = np.array([track.v[0], track.v[1], 0.0])
         if goal[0] < g.PICK_X_RANGE[0]:
             goal[0], vel[:] = g.PICK_X_RANGE[0], 0.0
         # Never chase an estimate off the pick window.
         goal[0] = min(goal[0], g.PICK_X_RANGE[1])
-        goal[1] = float(np.clip(goal[1], -g.BELT_HALF_WIDTH, g.BELT_HALF_WIDTH))
+        goal[1] = min(max(goal[1], -g.BELT_HALF_WIDTH), g.BELT_HALF_WIDTH)
         return goal, vel
 
     # ---- the state machine ------------------------------------------------------------------------
@@ -192,6 +197,13 @@ class PickController:
 
     def step(self, now: int) -> tuple[np.ndarray, bool]:
         """Joint targets (rad, six) and suction command for the current control period."""
+        self.plan(now)
+        q, err = self.kin.solve(self.p_sp, self.rot, self.q_sp)
+        return self.command(q, err), self.suction
+
+    def plan(self, now: int) -> None:
+        """Advance the state machine, the suction command and the cup setpoint ``p_sp`` (the pose
+        the IK then solves for, from ``q_sp``, with orientation ``rot``) one control period."""
         tip = self.kin.tcp_position(self.q)
         track = None
         if self.target is not None:
@@ -299,7 +311,6 @@ class PickController:
                 self._set_phase(Phase.HOME, now)
 
         self._move(goal, vel, vmax)
-        return self._joint_command(), self.suction
 
     def _gripped(self, now: int, tip: np.ndarray) -> None:
         """The cup holds the part: remember where, and how far below the lip the part's bottom
@@ -345,13 +356,13 @@ class PickController:
         self.v_sp += dv
         self.p_sp += self.v_sp * dt
 
-    def _joint_command(self) -> np.ndarray:
-        """IK of the setpoint, joint speed limit, servo-lag feed-forward."""
-        q, err = self.kin.solve(self.p_sp, self.rot, self.q_sp)
+    def command(self, q: np.ndarray, err: float) -> np.ndarray:
+        """Joint targets from the setpoint's IK solution ``q`` (residual ``err``): joint speed
+        limit, servo-lag feed-forward."""
         self.ik_error_m = max(self.ik_error_m, err)
         dq = q - self.q_sp
         limit = JOINT_SPEED_MAX_RAD_S * self.dt
-        over = float(np.abs(dq).max()) / limit
+        over = max(map(abs, dq.tolist())) / limit
         if over > 1.0:  # slow the whole move down so no joint exceeds its speed
             q = self.q_sp + dq / over
             self.p_sp = self.kin.tcp_position(q)

@@ -6,6 +6,11 @@ centre point), warm-started from the previous joint solution: the controller cal
 control period for a setpoint that moved at most ~1 cm, so one or two iterations converge.
 The geometric Jacobian comes straight from the hinge axes and anchors that ``mj_kinematics``
 computes (J_p = axis x (tcp - anchor), J_r = axis), which is all a serial chain of hinges needs.
+
+``solve_many`` is the same solver for many arms sharing one model and base pose (the abstract
+loops' arms), in lockstep: a solve of a few 6-vectors costs numpy's fixed per-call price, not
+arithmetic, so one call over the stacked arms replaces one per arm. Every operation it stacks gives
+the same bits as ``solve``'s (a unit test checks), so either path gives the same joints.
 """
 
 from __future__ import annotations
@@ -103,8 +108,64 @@ class ArmKinematics:
                 break
             j = self._jac(x)
             dq = j.T @ np.linalg.solve(j @ j.T + self._eye, e)
-            big = float(np.abs(dq).max())
+            big = max(map(abs, dq.tolist()))
             if big > MAX_ITER_STEP_RAD:
                 dq *= MAX_ITER_STEP_RAD / big
-            q = np.clip(q + dq, self.lo, self.hi)
+            # np.clip's result (both are elementwise max then min) without its dispatch
+            q = np.minimum(np.maximum(q + dq, self.lo), self.hi)
         return q, err
+
+    def solve_many(self, p: np.ndarray, rot: np.ndarray, q_seed: np.ndarray, iters: int = 4,
+                   tol: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+        """``solve`` for n arms with this model and base pose: tool positions ``p`` (n x 3), one
+        orientation ``rot`` for all, seeds ``q_seed`` (n x nq); returns (q, error norms) as
+        ``solve`` returns them arm by arm, to the bit. An arm stops iterating when ``solve``
+        would; the others go on."""
+        n = len(q_seed)
+        # Stacked matrix-vector products: (p - base) @ base_r is the same value, not the same bits.
+        pb = (self.base_r.T @ (np.asarray(p, float) - self.base_p)[:, :, None])[:, :, 0]
+        rb = self.base_r.T @ np.asarray(rot, float)
+        q = np.array(q_seed, dtype=float)
+        err = np.full(n, math.inf)
+        active = np.arange(n)  # arms still iterating
+        x, xmat = np.empty((n, 3)), np.empty((n, 3, 3))
+        axis, anchor = np.empty((n, self.nq, 3)), np.empty((n, self.nq, 3))
+        data = self.data
+        for it in range(iters + 1):
+            for i in active.tolist():
+                self._kin(q[i])
+                x[i] = data.site_xpos[self.site]
+                xmat[i] = data.site_xmat[self.site].reshape(3, 3)
+                axis[i] = data.xaxis
+                anchor[i] = data.xanchor
+            xa = x[active]
+            m = rb @ xmat[active].transpose(0, 2, 1)
+            e = np.empty((len(active), 6))
+            e[:, :3] = pb[active] - xa
+            e[:, 3] = 0.5 * (m[:, 2, 1] - m[:, 1, 2])
+            e[:, 4] = 0.5 * (m[:, 0, 2] - m[:, 2, 0])
+            e[:, 5] = 0.5 * (m[:, 1, 0] - m[:, 0, 1])
+            ea = np.sqrt((e[:, None, :] @ e[:, :, None])[:, 0, 0])
+            err[active] = ea
+            go = ea >= tol
+            if it == iters or not go.any():
+                break
+            active, e, xa = active[go], e[go], xa[go]
+            j = self._jac_many(xa, axis[active], anchor[active])
+            jt = j.transpose(0, 2, 1)
+            dq = (jt @ np.linalg.solve(j @ jt + self._eye, e[:, :, None]))[:, :, 0]
+            big = np.abs(dq).max(axis=1)
+            over = big > MAX_ITER_STEP_RAD
+            dq[over] *= (MAX_ITER_STEP_RAD / big[over])[:, None]
+            q[active] = np.minimum(np.maximum(q[active] + dq, self.lo), self.hi)
+        return q, err
+
+    def _jac_many(self, tcp: np.ndarray, axis: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+        """``_jac`` of n arms: tcp (n x 3), hinge axes and anchors (n x nq x 3)."""
+        r = tcp[:, None, :] - anchor
+        j = np.empty((len(tcp), 6, self.nq))
+        j[:, 0] = axis[:, :, 1] * r[:, :, 2] - axis[:, :, 2] * r[:, :, 1]
+        j[:, 1] = axis[:, :, 2] * r[:, :, 0] - axis[:, :, 0] * r[:, :, 2]
+        j[:, 2] = axis[:, :, 0] * r[:, :, 1] - axis[:, :, 1] * r[:, :, 0]
+        j[:, 3:] = axis.transpose(0, 2, 1)
+        return j

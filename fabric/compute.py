@@ -325,6 +325,7 @@ class ComputeNode:
         self.core_speed = profile.cpus / self.cores  # reference cores per emulated core
         self._free_at = [0] * self.cores
         self._series: dict[str, tuple[Any, ...]] = {}
+        self._job_models: dict[str, JobModel] = {}
         self._rng = rng
         self.records: list[JobRecord] = []
         self.measured = profile.timing != "model"
@@ -356,23 +357,25 @@ class ComputeNode:
             self.quota = self._wall_quota()
         core = 0 if self.cores == 1 else min(range(self.cores), key=self._free_at.__getitem__)
         start = max(arrival_us, self._free_at[core])
-        throttled0 = read_throttled_ns() if self._cgroup_visible else None
+        throttled = None
         if self.measured:
+            throttled0 = read_throttled_ns() if self._cgroup_visible else None
             token = self._clock.start()
             wall0 = time.perf_counter_ns()
             result = fn(*args)
             wall_ns = max(1, time.perf_counter_ns() - wall0)
             cpu = self._clock.stop(token)
+            if throttled0 is not None:
+                after = read_throttled_ns()
+                throttled = None if after is None else (after - throttled0) // 1000
+            cpu_ns = cpu.total_ns
+            duration = self._measured_duration_us(kind, cpu, wall_ns)
         else:  # the duration is drawn; the thread clock is kept for information only
             cpu0, wall0 = time.thread_time_ns(), time.perf_counter_ns()
             result = fn(*args)
-            cpu = CpuSample(time.thread_time_ns() - cpu0)
+            cpu_ns = time.thread_time_ns() - cpu0
             wall_ns = max(1, time.perf_counter_ns() - wall0)
-        throttled = None
-        if throttled0 is not None:
-            after = read_throttled_ns()
-            throttled = None if after is None else (after - throttled0) // 1000
-        duration = self._duration_us(kind, cpu, wall_ns)
+            duration = draw_model_us(self._job_model(kind), self._rng)
         end = start + duration
         self._free_at[core] = end
         series = self._series.get(kind)
@@ -384,12 +387,12 @@ class ComputeNode:
                                            metrics.JOB_THROTTLED.labels(*labels))
         series[0].observe(duration / 1e6)
         series[1].observe((start - arrival_us) / 1e6)
-        series[2].inc(cpu.total_ns / 1e9)
+        series[2].inc(cpu_ns / 1e9)
         if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
             series[3].inc(max(0, throttled) / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
-            queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu.total_ns // 1000,
+            queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu_ns // 1000,
             wall_us=wall_ns // 1000, throttled_us=throttled, timing=self.profile.timing,
         ))
         if self.measured and arrival_us >= self._next_probe_us:
@@ -401,16 +404,22 @@ class ComputeNode:
         over the threads it used but no more than the node's cores."""
         return max(cpu.longest_ns, cpu.total_ns / self.cores) / 1000 / self.core_speed
 
-    def _duration_us(self, kind: str, cpu: CpuSample, wall_ns: int) -> int:
-        mode = self.profile.timing
-        if mode == "model":
+    def _job_model(self, kind: str) -> JobModel:
+        """The distribution ``model`` timing draws a ``kind`` job's duration from."""
+        dist = self._job_models.get(kind)
+        if dist is None:
             dist = self.profile.model_us.get(kind) or DEFAULT_JOB_MODELS.get(kind)
             if dist is None:
                 raise KeyError(
                     f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
                     f"(has: {sorted(self.profile.model_us)})"
                 )
-            return draw_model_us(dist, self._rng)
+            self._job_models[kind] = dist
+        return dist
+
+    def _measured_duration_us(self, kind: str, cpu: CpuSample, wall_ns: int) -> int:
+        """A job's duration in ``cpu`` or ``wall`` timing."""
+        mode = self.profile.timing
         ideal_us = self.cpu_duration_us(cpu)
         if mode == "wall":
             assert self.quota is not None

@@ -113,6 +113,50 @@ def test_home_posture_and_ik_cover_the_cell() -> None:
         assert np.linalg.svd(kin.jacobian(q), compute_uv=False)[-1] > 0.05, target  # no singularity
 
 
+def test_solve_many_gives_solve_s_joints_to_the_bit() -> None:
+    """Seeds near and far from the targets (one step, several, capped steps, joint limits): each
+    arm's joints and error norm as ``solve`` gives them alone."""
+    kin = ArmKinematics()
+    rot = np.array(g.TOOL_DOWN)
+    rng = np.random.default_rng(3)
+    for spread_q, spread_p in [(0.02, 0.0), (0.02, 0.01), (0.3, 0.01), (0.3, 0.2), (1.5, 0.5)]:
+        q0 = np.array(HOME_Q) + rng.normal(0, spread_q, (40, 6))
+        p = np.array([kin.tcp_position(q) for q in q0]) + rng.normal(0, spread_p, (40, 3))
+        q_many, err_many = kin.solve_many(p, rot, q0)
+        for i in range(40):
+            q, err = kin.solve(p[i], rot, q0[i])
+            assert q.tobytes() == q_many[i].tobytes() and err == err_many[i]
+
+
+def test_controller_taken_apart_commands_what_step_commands() -> None:
+    """plan, then one ``solve_many`` over the arms, then command: the joints ``step`` gives."""
+    sc = parse_scenario({"loops": 1})
+    whole = [PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
+    apart = [PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
+    kin = ArmKinematics()
+    for ctl in whole + apart:
+        ctl.on_state(list(HOME_Q), False)
+    for t in range(10_000, 3_000_000, 10_000):
+        tracks = [[{"id": 0, "t_us": t, "p": [-0.3 + 0.2 * t / 1e6, 0.03 * (i - 1), 0.78],
+                    "v": [0.2, 0.0, 0.0]}] for i in range(3)]
+        expected = []
+        for ctl, tr in zip(whole, tracks, strict=True):
+            ctl.on_estimate(tr)
+            expected.append(ctl.step(t))
+        for ctl, tr in zip(apart, tracks, strict=True):
+            ctl.on_estimate(tr)
+            ctl.plan(t)
+        qs, errs = kin.solve_many(np.array([c.p_sp for c in apart]), apart[0].rot,
+                                  np.array([c.q_sp for c in apart]))
+        for ctl, q, err, (q_exp, suction), other in zip(apart, qs, errs.tolist(), expected, whole,
+                                                        strict=True):
+            cmd = ctl.command(q, err)
+            assert cmd.tobytes() == q_exp.tobytes() and ctl.suction == suction
+            ctl.on_state(cmd.tolist(), False)
+            other.on_state(q_exp.tolist(), False)
+    assert {c.phase for c in whole} != {"home"}  # the arms moved through the state machine
+
+
 # ---- scenario fields ----------------------------------------------------------------------------
 def test_part_spreads_are_validated() -> None:
     with pytest.raises(ScenarioError, match="object_size_spread_m"):
