@@ -1,6 +1,10 @@
 """The abstract loops' model of a detailed loop's camera and estimator (DESIGN 6): compressed
 frame sizes and the pose estimator's error and misses, measured on real frames by
-``python -m training.frame_model`` into ``domain/data/frame_model.json``.
+``python -m training.frame_model``. The platform ships the model of the default camera
+(``domain/data/frame_model.json``); a scenario whose camera differs in anything that shapes a
+compressed frame (``CAMERA_KEYS``) gets a model measured for its own settings on first use, kept
+in a cache (``cache_path``) and copied into each run's directory (``RUN_FILE``). A model is only
+ever used for the settings it was measured with: ``model_for`` refuses any other.
 
 Read by the abstract loops federate, the co-design policy's training environment and the
 benchmark that measures its network table; ``estimate`` applies the measured error to
@@ -9,7 +13,9 @@ ground-truth part positions as the real estimator would report them.
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,6 +23,15 @@ from typing import Any
 import numpy as np
 
 PATH = Path(__file__).parent / "data" / "frame_model.json"
+RUN_FILE = "frame_model.json"  # in a run's directory: the model its abstract loops use
+CACHE_ENV = "COSIM5G_CACHE_DIR"  # default: ~/.cache/cosim5g
+# The camera settings that shape a compressed frame or what the estimator sees in it.
+CAMERA_KEYS = ("width_px", "height_px", "fovy_deg", "jpeg_quality", "depth_codec", "depth_decimation",
+               "sensor_model", "depth_subpixel_px", "depth_noise_mm")
+
+
+class FrameModelMissing(LookupError):
+    """No frame model has been measured for a camera's settings."""
 
 
 @dataclass(frozen=True)
@@ -44,3 +59,39 @@ def load_frame_model(path: Path = PATH) -> FrameModel:
     data = json.loads(path.read_text())
     return FrameModel(np.asarray(data["frame_bytes"], dtype=np.int64), float(data["estimator_error_sd_m"]),
                       float(data["estimator_miss_rate"]), data)
+
+
+def camera_settings(camera: Any) -> dict[str, Any]:
+    """The settings of ``camera`` (a scenario's ``camera`` section) a frame model is measured for."""
+    return {k: getattr(camera, k) for k in CAMERA_KEYS}
+
+
+def settings_match(model: FrameModel, settings: dict[str, Any]) -> bool:
+    """Whether ``model`` was measured with ``settings``."""
+    recorded = model.data.get("settings", {})
+    return all(k in recorded and recorded[k] == v for k, v in settings.items())
+
+
+def cache_path(settings: dict[str, Any], root: Path | None = None) -> Path:
+    """Where the model measured for ``settings`` is cached (under ``root``, default
+    $COSIM5G_CACHE_DIR or ~/.cache/cosim5g)."""
+    root = root or Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "cosim5g")
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    return root / "frame-models" / f"{digest}.json"
+
+
+def find_model(settings: dict[str, Any], *candidates: Path) -> Path:
+    """The file of the frame model measured for ``settings``: the first of ``candidates``, the
+    cache and the shipped model that exists and matches; FrameModelMissing (naming the settings)
+    if none does."""
+    for path in (*candidates, cache_path(settings), PATH):
+        if path.exists() and settings_match(load_frame_model(path), settings):
+            return path
+    shipped = {k: v for k, v in load_frame_model().data["settings"].items() if k in CAMERA_KEYS}
+    raise FrameModelMissing(f"no frame model measured for the camera settings {settings} (the shipped "
+                            f"one is for {shipped}); a run measures one on first use")
+
+
+def model_for(settings: dict[str, Any], *candidates: Path) -> FrameModel:
+    """The frame model measured for ``settings`` (see ``find_model``)."""
+    return load_frame_model(find_model(settings, *candidates))

@@ -1,19 +1,21 @@
 """Measures what the abstract loops need from the detailed ones: the compressed frame sizes of the
 real camera pipeline and the error of the real pose estimator, on frames rendered by our scene.
 
-``python -m training.frame_model [--seconds S] [--out PATH] [--estimator NAME]`` renders one
-cell working (parts arriving twice as often as in a default run, the real controller picking
-them: domain/scenes.py) at the camera's frame rate, passes every frame through the
-camera node's pipeline with the scenario's default camera settings (D435 sensor model, JPEG +
-decimated lossless depth), runs the Edge's default estimator on the decoded frame and compares
-with ground truth (training/perception/evaluate.py: parts whose top face is at least 80%
-visible). Writes ``domain/data/frame_model.json``.
+``python -m training.frame_model [--seconds S] [--out PATH] [--estimator NAME] [--scenario YAML]``
+renders one cell working (parts arriving twice as often as in a default run, the real controller
+picking them: domain/scenes.py) at the camera's frame rate, passes every frame through the
+camera node's pipeline with the default camera settings (D435 sensor model, JPEG + decimated
+lossless depth) or those of ``--scenario``, runs the Edge's estimator on the decoded frame and
+compares with ground truth (training/perception/evaluate.py: parts whose top face is at least 80%
+visible). Writes ``domain/data/frame_model.json`` (the shipped model of the default camera) or
+``--out``. A run whose camera has no model yet runs this with its scenario (coordinator.frame_models).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +24,8 @@ import numpy as np
 from domain.codec import decode_frame
 from domain.estimator import make_estimator
 from domain.frame_model import PATH as FRAME_MODEL_PATH
-from scenario.schema import Scenario, parse_scenario
+from domain.frame_model import camera_settings
+from scenario.schema import Scenario, load_scenario, parse_scenario
 from training.perception.dataset import render_frames
 from training.perception.evaluate import evaluate
 
@@ -45,10 +48,7 @@ def measure(sc: Scenario, estimator: str) -> dict[str, Any]:
     rgb0, depth0 = decode_frame(frames[-1])
     cam = sc.camera
     return {
-        "settings": {"width_px": cam.width_px, "height_px": cam.height_px, "jpeg_quality": cam.jpeg_quality,
-                     "fps": cam.fps, "sensor_model": cam.sensor_model, "depth_subpixel_px": cam.depth_subpixel_px,
-                     "depth_codec": cam.depth_codec, "depth_decimation": cam.depth_decimation,
-                     "depth_noise_mm": cam.depth_noise_mm, "object_period_s": sc.cell.object_period_s},
+        "settings": {**camera_settings(cam), "fps": cam.fps, "object_period_s": sc.cell.object_period_s},
         "frames": len(sizes),
         "frame_bytes": sizes,
         "mean_frame_bytes": float(np.mean(sizes)),
@@ -73,12 +73,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--estimator", choices=["learned", "classical"], default=None,
                     help="default: the scenario default (edge.estimator)")
+    ap.add_argument("--scenario", type=Path, default=None,
+                    help="measure with this scenario's camera (and estimator) instead of the defaults")
     args = ap.parse_args(argv)
     default = parse_scenario({})
+    base = load_scenario(args.scenario) if args.scenario else default
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     sc = parse_scenario({"loops": 1, "detailed_loops": 1, "duration_s": args.seconds,
-                         "cell": {"object_period_s": default.cell.object_period_s / 2}})
+                         "cell": {"object_period_s": default.cell.object_period_s / 2},
+                         "camera": base.camera.model_dump(), "edge": {"estimator": base.edge.estimator}})
     result = measure(sc, args.estimator or sc.edge.estimator)
-    tmp = args.out.with_suffix(".json.tmp")
+    tmp = args.out.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(result, indent=1) + "\n")
     tmp.replace(args.out)
     print(f"{result['frames']} frames, mean {result['mean_frame_bytes']:.0f} B (rgb {result['mean_rgb_bytes']:.0f}, "

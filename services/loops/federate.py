@@ -18,12 +18,13 @@ import numpy as np
 from domain.codec import slot_after, split_packets
 from domain.controller import PickController
 from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
-from domain.frame_model import load_frame_model
+from domain.frame_model import RUN_FILE, camera_settings, model_for
+from domain.kinematics import ArmKinematics
 from domain.policy import Qos
 from domain.scene import SERVO_LAG_S
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
-from fabric.federate import Federate
+from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
 from fabric.tables import write_table
 
@@ -55,13 +56,15 @@ class LoopsFederate(Federate):
 
     def setup(self) -> None:
         sc = self.scenario
-        self.frame_model = load_frame_model()
+        # The model measured for this camera, put into the run directory by the coordinator.
+        self.frame_model = model_for(camera_settings(sc.camera), self.results_dir / RUN_FILE)
         self.codesign = CoDesign.for_scenario(sc)
         nodes = sc.nodes
 
         def modelled(profile: Any) -> Any:
             return profile.model_copy(update={"timing": "model"})
 
+        self.kin = ArmKinematics()  # the arms' IK, all at once (every arm has the same model and base)
         self.loops: dict[int, AbstractLoop] = {}
         for i in range(sc.detailed_loops, sc.loops):
             self.loops[i] = AbstractLoop(
@@ -78,6 +81,10 @@ class LoopsFederate(Federate):
             self.record_jobs(lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
         self.schedule(0, self._control_tick)
         self.schedule(0, self._policy_tick)
+
+    def external_horizon_us(self) -> int | None:
+        # It sends only to physics and netsim: nothing leaves a group holding both.
+        return NEVER_US if {"physics", "netsim"} <= self.cohosted else None
 
     # ---- messages -----------------------------------------------------------------------------
     def on_message(self, msg: Message) -> None:
@@ -126,10 +133,11 @@ class LoopsFederate(Federate):
 
     # ---- edge side ------------------------------------------------------------------------------
     def _frame_packet(self, lp: AbstractLoop, fid: int, n: int) -> None:
-        lp.arrived[fid] = lp.arrived.get(fid, 0) + 1
-        if lp.arrived[fid] < n:
+        got = lp.arrived.get(fid, 0) + 1
+        if got < n:
+            lp.arrived[fid] = got
             return
-        del lp.arrived[fid]
+        lp.arrived.pop(fid, None)
         capture_us, objects = lp.truth.pop(fid)
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
@@ -175,11 +183,20 @@ class LoopsFederate(Federate):
     def _control_tick(self) -> None:
         sc = self.scenario
         latest = self.now
-        commands = []
+        ctls = [lp.ctl for lp in self.loops.values()]
         for lp in self.loops.values():
-            (q, suction), ready = lp.robot_cpu.run("control", self.now, lp.ctl.step, self.now)
+            # Each arm's control step is ``PickController.step`` taken apart, to solve the IK of
+            # all arms in one call. The job's duration is drawn (modelled timing), so the thread
+            # time it keeps for information covers the plan only.
+            _, ready = lp.robot_cpu.run("control", self.now, lp.ctl.plan, self.now)
             latest = max(latest, ready)
-            commands.append({"loop": lp.index, "q": [float(v) for v in q], "suction": bool(suction)})
+        commands = []
+        if ctls:
+            qs, errs = self.kin.solve_many(np.array([c.p_sp for c in ctls]), ctls[0].rot,
+                                           np.array([c.q_sp for c in ctls]))
+            for lp, q, err in zip(self.loops.values(), qs, errs.tolist(), strict=True):
+                commands.append({"loop": lp.index, "q": lp.ctl.command(q, err).tolist(),
+                                 "suction": bool(lp.ctl.suction)})
         # One message for all arms: they share the latest compute completion of this tick.
         self.send("physics", "act", "command", latest + sc.robot.actuation_latency_us, {"commands": commands})
         nxt = self.now + sc.robot.control_period_us

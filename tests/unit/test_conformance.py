@@ -17,6 +17,7 @@ A new federate class joins with one line in ``CASES``, naming a function that gi
 
 from __future__ import annotations
 
+import json
 import queue
 import random
 import threading
@@ -30,6 +31,8 @@ import numpy as np
 import pytest
 
 from domain.codec import encode_frame, split_packets
+from domain.frame_model import PATH as FRAME_MODEL
+from domain.frame_model import RUN_FILE, camera_settings
 from fabric import federate as federate_mod
 from fabric import keys
 from fabric.bus import InMemoryBus, InMemoryHub
@@ -238,6 +241,13 @@ class ScriptedConductor:
         for plane in keys.DATA_PLANES:
             self.bus.subscribe(f"{keys.ROOT}/{RUN}/{plane}/*/{case.name}",
                                lambda k, p: self.sent.extend(decode_data(p)))
+        if case.name == "loops":
+            # What the coordinator puts into a run's directory: here the default camera's frame
+            # sizes stand for the tiny camera's (the window protocol does not depend on them).
+            model = json.loads(FRAME_MODEL.read_text())
+            model["settings"].update(camera_settings(self.sc.camera))
+            results_dir.mkdir(parents=True, exist_ok=True)
+            (results_dir / RUN_FILE).write_text(json.dumps(model))
         self.fed = case.cls(FederateContext(case.name, RUN, self.sc, results_dir), InMemoryBus(self.hub))
         self.result = Result()
         self.thread = threading.Thread(target=self._serve, daemon=True)
