@@ -4,20 +4,22 @@ Speed = simulated seconds per wall second (> 1 is faster than real time), for:
 
 - 32 loops, ``detailed_loops=0``, policy none, process runtime;
 - 32 loops, ``detailed_loops=1`` (the default camera), process runtime;
+- each of those again with ``cohost=none`` (every federate in a process of its own), as a ratio;
 - the same in the docker runtime (``--docker``), as a ratio to the process runtime;
 - netsim standalone, 36 UEs at 8.5 Mbit/s (saturated), slots per wall second.
 
 Speed counts the whole run (starting the federates included). Where the windows' wall time went
-(``windows_wall_s``: from the first window to the last): per federate, the share it spent
-processing windows (``busy``), and an upper bound of the share spent in the window protocol
-(barrier and messaging): 1 - (busiest federate's processing time) / windows' wall time, since
-the windows cannot take less than the busiest federate's processing.
+(``windows_wall_s``: from the first window to the last): per process, the share it spent
+processing windows (``busy``; a group's members share one thread, so the group's is theirs added
+up), and an upper bound of the share spent in the window protocol (barrier and messaging):
+1 - (busiest process's processing time) / windows' wall time, since the windows cannot take less
+than the busiest process's processing.
 
 Writes results/bench/speed.{md,json}. Figures from a shared machine: compare ratios within one
 run of this script. With ``--profile`` every federate of the process-runtime cases runs under
 cProfile (which slows it down: its speeds are not the benchmark's) and speed.md lists, per
-federate, the functions that took the most time of their own; the statistics are kept under
-results/bench/profile/<case>/<federate>.pstats.
+process (``core`` for the group), the functions that took the most time of their own; the statistics are kept under
+results/bench/profile/<case>/<process>.pstats.
 
     python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1,netsim] [--profile]
 """
@@ -42,15 +44,16 @@ from services.main import PROFILE_DIR_ENV
 
 ROOT = Path(__file__).parents[1]
 CASES = ("k0", "k1", "netsim")
+CORE_MEMBERS = ("physics", "netsim", "loops")  # coordinator.run.CORE_ROLES' federates
 
 
 def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path,
-             profile_dir: Path | None = None) -> dict[str, Any]:
+             profile_dir: Path | None = None, cohost: str = "core") -> dict[str, Any]:
     """One run of the baseline scenario (policy none) at ``loops`` / ``detailed``; its speed and
     where the wall time went. With ``profile_dir`` its federates write their cProfile there."""
     sc = load_scenario(ROOT / "configs" / "scenarios" / "baseline.yaml",
                        [f"loops={loops}", f"detailed_loops={detailed}", f"duration_s={duration_s}",
-                        f"runtime={runtime}"])
+                        f"runtime={runtime}", f"cohost={cohost}"])
     t0 = time.perf_counter()
     if profile_dir is not None:
         os.environ[PROFILE_DIR_ENV] = str(profile_dir)  # federate processes inherit it
@@ -66,13 +69,20 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
     run_wall = float(k.get("wall_time_s") or wall)
     # Shares of the windows' wall time: starting and stopping federates is not the protocol.
     windows_wall = float(k.get("windows_wall_s") or run_wall)
-    busiest = max(busy.values(), default=0.0)
+    # A group's members share one thread: the group's processing time is theirs added up.
+    process_busy = dict(busy)
+    if cohost == "core":
+        members = [n for n in busy if n in CORE_MEMBERS]
+        process_busy = {n: b for n, b in busy.items() if n not in members}
+        process_busy["core (" + ", ".join(members) + ")"] = sum(busy[n] for n in members)
+    busiest = max(process_busy.values(), default=0.0)
     return {
         "status": r.status, "reason": r.reason, "loops": loops, "detailed_loops": detailed,
         "runtime": runtime, "sim_s": k.get("sim_time_s"), "wall_s": run_wall, "windows_wall_s": windows_wall,
         "speed": k.get("real_time_factor"), "windows": k.get("windows"),
         "windows_per_s": (k.get("windows") or 0) / windows_wall if windows_wall else None,
-        "busy_share": {n: b / windows_wall for n, b in sorted(busy.items())},
+        "cohost": cohost,
+        "busy_share": {n: b / windows_wall for n, b in sorted(process_busy.items())},
         "cpu_s": cpu,
         "protocol_share_max": max(0.0, 1.0 - busiest / windows_wall) if windows_wall else None,
         "tasks": k.get("tasks"), "task_success_rate": k.get("task_success_rate"),
@@ -124,6 +134,10 @@ def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[s
         success = "-" if r["task_success_rate"] is None else f"{r['task_success_rate']:.0%}"
         lines.append(f"| {name} | {r['speed']:.3f} | {r['windows_per_s']:.0f} | {r['protocol_share_max']:.0%} | "
                      f"{busiest[0]} {busiest[1]:.0%} | {r['tasks']}, {success} |")
+    for case in ("k0", "k1"):
+        grouped, alone = runs.get(f"{case} process"), runs.get(f"{case} process, cohost none")
+        if grouped and alone and grouped.get("speed") and alone.get("speed"):
+            lines.append(f"| {case}: cohost core / none | {grouped['speed'] / alone['speed']:.3f} (ratio) | | | | |")
     if "k1 docker" in runs and "k1 process" in runs:
         d, p = runs["k1 docker"], runs["k1 process"]
         if d.get("speed") and p.get("speed"):
@@ -160,10 +174,15 @@ def main(argv: list[str] | None = None) -> int:
         def profile(case: str) -> Path | None:
             return args.out / "profile" / case if args.profile else None
 
+        # Each case beside the same run with every federate in a process of its own (cohost none).
         if "k0" in only:
             runs["k0 process"] = run_case(args.loops, 0, args.duration_s, "process", results, profile("k0"))
+            runs["k0 process, cohost none"] = run_case(args.loops, 0, args.duration_s, "process", results,
+                                                       cohost="none")
         if "k1" in only:
             runs["k1 process"] = run_case(args.loops, 1, args.duration_s, "process", results, profile("k1"))
+            runs["k1 process, cohost none"] = run_case(args.loops, 1, args.duration_s, "process", results,
+                                                       cohost="none")
             if args.docker:
                 runs["k1 docker"] = run_case(args.loops, 1, args.duration_s, "docker", results)
     netsim = netsim_case(2.0) if "netsim" in only else None

@@ -59,13 +59,27 @@ HEALTH_EVERY_S = 0.05
 
 
 class Conductor:
+    """``federates``: the participants of the window protocol. ``groups``: participants that serve
+    several federates in one process (``fabric.group``), by name, with their members: messages
+    sent to a member count for its group, and every member sends its own ``stopped`` report.
+    ``long_window_us``: the longest window given to a participant that is alone with something
+    to do and promised (``Done.horizon_us``) to send nothing to the others before its end
+    (default: ``window_us``, i.e. never longer)."""
+
     def __init__(self, bus: Bus, run_id: str, federates: list[str], window_us: int, end_us: int,
                  window_timeout_s: float = 10.0, health: HealthCheck | None = None,
                  on_progress: Callable[[Progress], None] | None = None,
-                 progress_every_s: float = 0.5) -> None:
+                 progress_every_s: float = 0.5, groups: dict[str, list[str]] | None = None,
+                 long_window_us: int | None = None) -> None:
         self.bus = bus
         self.run_id = run_id
         self.federates = sorted(federates)
+        self.groups = groups or {}
+        self._participant = {m: g for g, members in self.groups.items() for m in members}
+        self.reporters = sorted({m for f in self.federates for m in self.groups.get(f, [f])})
+        self.long_window_us = long_window_us or window_us
+        if self.long_window_us % window_us:
+            raise ValueError(f"long_window_us ({long_window_us}) must be a multiple of window_us ({window_us})")
         self.window_us = window_us
         self.end_us = end_us
         self.window_timeout_s = window_timeout_s
@@ -117,16 +131,32 @@ class Conductor:
         # messages had been sent to it by then: a federate whose next event lies beyond a window
         # and to which nothing was sent since sits that window out (no advance, no reply).
         next_event: dict[str, int | None] = {}
+        horizons: dict[str, int | None] = {}
         seen_in: dict[str, int] = {}
         t_start = 0
         wall0 = time.monotonic()
         last_progress = 0.0
         while t_start < self.end_us:
             t_end = t_start + self.window_us
-            expected = {f: sum(s.get(f, 0) for s in sent.values()) for f in self.federates}
+            expected = dict.fromkeys(self.federates, 0)
+            for s in sent.values():
+                for dst, n in s.items():
+                    dst = self._participant.get(dst, dst)
+                    if dst in expected:
+                        expected[dst] += n
             active = [f for f in self.federates
                       if f not in seen_in or expected[f] > seen_in[f]
                       or ((nxt := next_event[f]) is not None and nxt < t_end)]
+            alone = active[0] if len(active) == 1 else None
+            if (alone is not None and expected[alone] == seen_in.get(alone)
+                    and (horizon := horizons.get(alone)) is not None and horizon > t_end):
+                # The others have nothing to do and nothing coming before their next events; it
+                # has been sent nothing new (its horizon holds only until something arrives) and
+                # sends them nothing before its horizon: a long window, up to the earliest.
+                others = [t for f, t in next_event.items() if f != alone and t is not None]
+                last_end = -(-self.end_us // self.window_us) * self.window_us  # as with short windows
+                limit = min([t_start + self.long_window_us, last_end, horizon, *others])
+                t_end = max(t_end, limit // self.window_us * self.window_us)
             adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected,
                           federates=None if len(active) == len(self.federates) else active)
             self._trace.update(f"{self.windows}:{t_start}:{t_end};".encode())
@@ -137,6 +167,7 @@ class Conductor:
             for d in dones.values():
                 sent[d.federate] = d.sent_to
                 next_event[d.federate] = d.next_event_us
+                horizons[d.federate] = d.horizon_us
             # The next window: the earliest of every federate's next event (sitting-out ones
             # included) and of the messages sent in this one.
             nexts = [t for t in next_event.values() if t is not None]
@@ -185,7 +216,7 @@ class Conductor:
         self.bus.publish(keys.stop(self.run_id), Stop(reason=reason, t_us=self.t_us).encode())
         got: dict[str, Stopped] = {}
         deadline = time.monotonic() + timeout_s
-        while len(got) < len(self.federates):
+        while len(got) < len(self.reporters):
             # Federates exit once they reported: no health check while collecting reports.
             item = self._next(deadline, check_health=False)
             if item is None:

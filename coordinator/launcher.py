@@ -1,9 +1,11 @@
 """What a runtime must do to host a run's federates: start them, report deaths, show logs, stop.
 
-``FederateSpec`` is the runtime-independent description of one federate; the process runtime
-(``coordinator.runtime_process``) and the docker runtime implement ``Launcher``. Every federate
-is started as ``python -m services.main <role> --name ... --run-id ... --endpoint ...
---scenario <resolved yaml> --results <run dir>``.
+``FederateSpec`` is the runtime-independent description of one federate process (a federate, or
+a group of them: ``members``); the process runtime (``coordinator.runtime_process``) and the docker
+runtime implement ``Launcher``. Every federate process is started as ``python -m services.main
+<role> --name ... --run-id ... --endpoint ... --scenario <resolved yaml> --results <run dir>
+[--member NAME:ROLE ...]``. A runtime reports deaths and logs by federate name: a process that
+hosts several federates stands for each of them (``FederateSpec.names``).
 """
 
 from __future__ import annotations
@@ -28,8 +30,15 @@ class FederateSpec:
     """One federate of a run."""
 
     name: str  # e.g. "camera-0"
-    role: str  # physics, camera, edge, robot, netsim, loops
+    role: str  # physics, camera, edge, robot, netsim, loops; or group (of ``members``)
     limits: NodeLimits = field(default_factory=NodeLimits)
+    # A group's federates (name, role), served together by its process (``fabric.group``).
+    members: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The participant and every federate its process serves."""
+        return (self.name, *(name for name, _ in self.members))
 
     def argv(self, run_id: str, endpoint: str, scenario_path: str, results_dir: str) -> list[str]:
         """Arguments after ``python``."""
@@ -40,6 +49,7 @@ class FederateSpec:
             "--endpoint", endpoint,
             "--scenario", scenario_path,
             "--results", results_dir,
+            *(a for name, role in self.members for a in ("--member", f"{name}:{role}")),
         ]
 
 

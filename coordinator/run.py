@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.conductor import Conductor, Progress, RunFailed
+from coordinator.frame_models import FrameModelError, provide_frame_model
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
 from fabric import keys
@@ -44,10 +45,26 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+# ``cohost: core`` serves these federates as one group (``fabric.group``) in one process: none
+# has a compute node to emulate, and they exchange messages every window.
+CORE_ROLES = ("physics", "netsim", "loops")
+CORE_GROUP = "core"
+# The longest window given to a participant alone with something to do (the core group, while
+# the detailed loops' federates wait): it meets the conductor at least this often.
+LONG_WINDOW_US = 100_000
+
+
 def federate_specs(scenario: Scenario) -> list[FederateSpec]:
+    """One spec per process (participant of the window protocol); with ``cohost: core`` the core
+    federates are the members of the group ``core``."""
     profiles = {"camera": scenario.nodes.camera, "edge": scenario.nodes.edge, "robot": scenario.nodes.robot}
     specs = []
+    core = tuple((name, role) for name, role in scenario.federates() if role in CORE_ROLES)
+    if scenario.cohost == "core":
+        specs.append(FederateSpec(name=CORE_GROUP, role="group", members=core))
     for name, role in scenario.federates():
+        if scenario.cohost == "core" and role in CORE_ROLES:
+            continue
         p = profiles.get(role)
         limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb, timing=p.timing) if p else NodeLimits()
         specs.append(FederateSpec(name=name, role=role, limits=limits))
@@ -136,9 +153,13 @@ def execute_run(
     windows = 0
     sim_us = 0
     try:
+        try:
+            provide_frame_model(scenario, scenario_path, run_dir)
+        except (FrameModelError, OSError) as exc:
+            raise RunFailed(f"abstract loops' frame model: {exc}", federate="loops") from None
         liveness = LivenessWatch(router, run_id)
         specs = federate_specs(scenario)
-        names = [s.name for s in specs]
+        groups = {s.name: [name for name, _ in s.members] for s in specs if s.role == "group"}
         deadline = wall0 + scenario.watchdog.run_timeout_s
 
         def health() -> None:
@@ -154,14 +175,16 @@ def execute_run(
                     raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)",
                                     federate=name)
             if dead:
-                name = sorted(dead)[0]
-                raise RunFailed(f"federate {name} {dead[name]}", federate=name)
+                name = sorted(dead)[0]  # a group sorts before its members, who died with it
+                what = f"{name} (the process of {', '.join(groups[name])})" if name in groups else name
+                raise RunFailed(f"federate {what} {dead[name]}", federate=name)
             if time.monotonic() > deadline:
                 raise RunFailed(f"run exceeded watchdog.run_timeout_s = {scenario.watchdog.run_timeout_s} s",
                                 status="timed_out")
 
-        conductor = Conductor(router, run_id, names, scenario.window_us, scenario.duration_us,
-                              scenario.watchdog.window_timeout_s, health, on_progress)
+        conductor = Conductor(router, run_id, [s.name for s in specs], scenario.window_us, scenario.duration_us,
+                              scenario.watchdog.window_timeout_s, health, on_progress, groups=groups,
+                              long_window_us=LONG_WINDOW_US)
         launcher.start(specs, run_id, launcher.router_endpoint_for_federates(port), scenario_path, run_dir)
         conductor.wait_ready(scenario.watchdog.ready_timeout_s)
         conducted0 = time.monotonic()

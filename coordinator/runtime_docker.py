@@ -356,6 +356,7 @@ class DockerLauncher(Launcher):
         self.network: Any = None
         self._containers: dict[str, Any] = {}  # federate name -> Container
         self._limits: dict[str, NodeLimits] = {}
+        self._hosted: dict[str, str] = {}  # federate served by another's container -> that one
         self._dead: dict[str, str] = {}
         self._logs: dict[str, list[str]] = {}  # last lines kept when containers are removed
         self._attached: list[Any] = []  # platform containers connected to the run network
@@ -519,22 +520,31 @@ class DockerLauncher(Launcher):
                 f"cannot start federate {spec.name} ({spec.role}): {e.explanation or e}") from e
         self._containers[spec.name] = container
         self._limits[spec.name] = spec.limits
+        for name, _ in spec.members:
+            self._hosted[name] = spec.name
 
     # -- supervision --------------------------------------------------------------------------
 
     def container(self, name: str) -> Any:
         """The container of federate ``name`` (for inspection and tests)."""
-        return self._containers[name]
+        return self._containers[self._hosted.get(name, name)]
+
+    def _with_members(self, dead: dict[str, str]) -> dict[str, str]:
+        """``dead`` (by container) with the federates a dead container hosted."""
+        out = dict(dead)
+        out.update({name: f"{dead[host]} (container of {host})" for name, host in self._hosted.items()
+                    if host in dead})
+        return out
 
     def dead(self) -> dict[str, str]:
         """Federates that have exited. Cheap to call in a tight loop: the daemon is asked at most
         every ``poll_interval_s`` (the conductor calls this before every control message, and one
         inspect per container costs ~1.5 ms: polling each time would dominate a window)."""
         if self._stopped:  # our own stop() removed the containers: nothing new died
-            return dict(self._dead)
+            return self._with_members(self._dead)
         now = time.monotonic()
         if self.run_id is None or now - self._last_poll < self.poll_interval_s:
-            return dict(self._dead)
+            return self._with_members(self._dead)
         self._last_poll = now
         try:
             listed = self.client.containers.list(
@@ -542,7 +552,7 @@ class DockerLauncher(Launcher):
         except (APIError, DockerException) as e:
             log.warning("run %s: cannot ask the Docker daemon for container states: %s",
                         self.run_id, e)
-            return dict(self._dead)
+            return self._with_members(self._dead)
         state_by_id = {c.id: c.attrs.get("State") for c in listed}
         for name, c in self._containers.items():
             if name in self._dead:
@@ -557,11 +567,12 @@ class DockerLauncher(Launcher):
                                                     self._limits.get(name))
                 except NotFound:
                     self._dead[name] = "container removed outside cosim5g"
-        return dict(self._dead)
+        return self._with_members(self._dead)
 
     def resource_note(self, name: str) -> str | None:
         """A node that hangs rather than dies at its memory limit (the kernel reclaiming its last
         pages instead of killing it) is named as out of memory."""
+        name = self._hosted.get(name, name)
         c = self._containers.get(name)
         limits = self._limits.get(name)
         if c is None or limits is None or limits.mem_mb is None:
@@ -576,6 +587,7 @@ class DockerLauncher(Launcher):
         return f"at its memory limit of {limits.mem_mb} MiB ({usage / 2**20:.0f} MiB used): out of memory"
 
     def last_log_lines(self, name: str, n: int = 20) -> list[str]:
+        name = self._hosted.get(name, name)
         if name not in self._containers:
             raise KeyError(f"no federate {name!r} in run {self.run_id}; "
                            f"known: {sorted(self._containers)}")

@@ -27,6 +27,7 @@ class ProcessLauncher(Launcher):
     def __init__(self) -> None:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.logs: dict[str, Path] = {}
+        self.hosted: dict[str, str] = {}  # federate -> the federate whose process serves it
         self._stopping = False
 
     def router_endpoint_for_federates(self, router_port: int) -> str:
@@ -46,7 +47,9 @@ class ProcessLauncher(Launcher):
             env.setdefault(var, "1")
         for spec in specs:
             log_path = log_dir / f"{spec.name}.log"
-            self.logs[spec.name] = log_path
+            for name in spec.names:
+                self.logs[name] = log_path
+                self.hosted[name] = spec.name
             with open(log_path, "ab") as log:
                 self.procs[spec.name] = subprocess.Popen(
                     [sys.executable, *spec.argv(run_id, endpoint, str(scenario_path), str(run_dir))],
@@ -56,11 +59,11 @@ class ProcessLauncher(Launcher):
 
     def dead(self) -> dict[str, str]:
         out = {}
-        for name, proc in self.procs.items():
-            code = proc.poll()
+        for name, host in self.hosted.items():
+            code = self.procs[host].poll()
             if code is not None:
                 how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
-                out[name] = how
+                out[name] = how if host == name else f"{how} (process of {host})"
         return out
 
     def last_log_lines(self, name: str, n: int = 20) -> list[str]:

@@ -146,6 +146,10 @@ class Done(ControlRecord):
     sent_to: dict[str, int] = Field(description="cumulative data messages sent, per destination")
     next_event_us: int | None = Field(description="earliest pending internal event or input")
     earliest_sent_us: int | None = Field(description="earliest delivery time sent in this window")
+    horizon_us: int | None = Field(
+        default=None, description="no message to another participant will be sent before this time "
+        "unless one arrives from another participant first (None: no such promise); a participant "
+        "alone with something to do may be given a window up to it")
     error: str | None = Field(default=None, description="set when the federate failed")
 
 

@@ -259,6 +259,12 @@ class Scenario(Strict):
     name: str = Field(default="scenario", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="scenario name")
     seed: int = Field(default=1, ge=0, description="root seed of every random stream")
     runtime: Literal["process", "docker"] = Field(default="process", description="where federates run")
+    cohost: Literal["core", "none"] = Field(
+        default="core",
+        description="core: physics, netsim and the abstract loops (the federates without a compute "
+                    "node profile) share one process or container, a thread each, their messages to "
+                    "each other carried in memory; none: every federate in a process of its own. "
+                    "What is simulated is the same either way")
     duration_s: float = Field(default=10.0, gt=0, le=86400, description="simulated duration, s")
     window_us: int = Field(default=1000, ge=10, description="lookahead window W, us")
     loops: int = Field(default=2, ge=1, le=128, description="number of control loops N")

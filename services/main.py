@@ -2,7 +2,8 @@
 
 Connects to the run's zenoh router, builds the federate of the given role and serves the window
 protocol until the coordinator stops the run. Exit code 0 on a clean stop, 1 on a failure, 3 when
-the coordinator went away.
+the coordinator went away. The role ``group`` serves the federates named by ``--member NAME:ROLE``
+(repeated) together, as one participant (``fabric.group``).
 
 The process never outlives its coordinator, although it runs in a session of its own (so that
 stopping a run can signal its whole process group): the coordinator's liveliness token vanishing
@@ -58,6 +59,14 @@ def federate_class(role: str) -> type[Federate]:
 
 
 ROLES = ("physics", "camera", "edge", "robot", "netsim", "loops")
+
+
+def member(text: str) -> tuple[str, str]:
+    """``NAME:ROLE`` of a group's member."""
+    name, _, role = text.partition(":")
+    if not name or role not in ROLES:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME:ROLE with ROLE one of {', '.join(ROLES)}")
+    return name, role
 
 
 def set_parent_death_signal(sig: int) -> bool:
@@ -139,13 +148,17 @@ def serve_profiled(fed: Federate, profile_dir: str | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="services.main", description=__doc__)
-    ap.add_argument("role", choices=ROLES)
+    ap.add_argument("role", choices=[*ROLES, "group"])
     ap.add_argument("--name", required=True, help="federate name, e.g. camera-0")
     ap.add_argument("--run-id", required=True)
     ap.add_argument("--endpoint", required=True, help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     ap.add_argument("--scenario", required=True, help="resolved scenario YAML of the run")
     ap.add_argument("--results", required=True, help="run directory for result tables")
+    ap.add_argument("--member", type=member, action="append", default=[], metavar="NAME:ROLE",
+                    help="a federate of the group (role group; repeatable)")
     args = ap.parse_args(argv)
+    if (args.role == "group") != bool(args.member):
+        ap.error("--member goes with the role group, which needs at least one")
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {args.name} %(levelname)s %(name)s: %(message)s")
     lifeline = Lifeline()
@@ -163,7 +176,15 @@ def main(argv: list[str] | None = None) -> int:
 
     bus = ZenohBus(args.endpoint, mode="client")
     ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results))
-    fed = federate_class(args.role)(ctx, bus)
+    fed: Federate
+    if args.role == "group":
+        from fabric.group import FederateGroup
+
+        members = [federate_class(role)(FederateContext(name, args.run_id, scenario, Path(args.results)), bus)
+                   for name, role in args.member]
+        fed = FederateGroup(ctx, bus, members)
+    else:
+        fed = federate_class(args.role)(ctx, bus)
     lifeline.attach(fed)
     try:
         code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))

@@ -14,7 +14,7 @@ import numpy as np
 
 from domain.sensor import frame_offset_us, sensor_depth_mm
 from domain.world import World, spawn_plan
-from fabric.federate import Federate
+from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
 
 log = logging.getLogger(__name__)
@@ -36,11 +36,19 @@ class PhysicsFederate(Federate):
         self.tasks_ended = 0
         self.tasks_placed = 0
         self.snapshot_saved = False
+        # When the next frame of each detailed loop and the next joint states are due: what
+        # leaves a group holding physics and the abstract loops (``external_horizon_us``).
+        self.next_out: dict[str, int] = {}
         for i in range(sc.loops):
             for at, part in spawn_plan(sc, self.rng(f"spawn-c{i}"), self.step_us):
                 self.schedule(at, self._spawn, i, part)
-            self.schedule(frame_offset_us(i, sc.loops, self.frame_period, self.step_us), self._frame, i)
+            first = frame_offset_us(i, sc.loops, self.frame_period, self.step_us)
+            self.schedule(first, self._frame, i)
+            if i in self.detailed:
+                self.next_out[f"frame-{i}"] = first
         self.schedule(0, self._publish_states)
+        if self.detailed:
+            self.next_out["states"] = 0
         if self.detailed:
             # The renderer (GL context, shader compilation) is made before the run starts: on a
             # loaded host its first frame takes seconds, which the first window would spend.
@@ -72,6 +80,8 @@ class PhysicsFederate(Federate):
         nxt = self.now + self.frame_period
         if nxt < sc.duration_us:
             self.schedule(nxt, self._frame, loop)
+        if loop < sc.detailed_loops:
+            self.next_out[f"frame-{loop}"] = nxt if nxt < sc.duration_us else NEVER_US
 
     def _publish_states(self) -> None:
         sc = self.scenario
@@ -86,6 +96,15 @@ class PhysicsFederate(Federate):
         nxt = self.now + sc.robot.control_period_us
         if nxt < sc.duration_us:
             self.schedule(nxt, self._publish_states)
+        if self.detailed:
+            self.next_out["states"] = nxt if nxt < sc.duration_us else NEVER_US
+
+    def external_horizon_us(self) -> int | None:
+        # The abstract loops' truth and joint states go to the loops federate: outside the
+        # group only if it is not a member.
+        if self.abstract and "loops" not in self.cohosted:
+            return None
+        return min(self.next_out.values(), default=NEVER_US)
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "command":

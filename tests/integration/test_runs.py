@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 from support import MODEL_TIMING_SETS, processes_with
 
@@ -62,6 +63,26 @@ def test_same_seed_and_model_timing_give_the_same_trace(tmp_path: Path) -> None:
     assert run_trace(tmp_path, 12) != first
 
 
+@pytest.mark.parametrize("detailed", [0, 1])
+def test_the_core_group_simulates_what_separate_processes_do(tmp_path: Path, detailed: int) -> None:
+    """Physics, netsim and the abstract loops served as one group (with long windows when no loop
+    is detailed) decide every packet and task exactly as when each has a process of its own."""
+    tables = {}
+    for cohost in ("core", "none"):
+        sc = load_scenario(ROOT / "configs" / "scenarios" / "baseline.yaml",
+                           ["loops=4", f"detailed_loops={detailed}", "duration_s=3", f"cohost={cohost}",
+                            *MODEL_TIMING_SETS])
+        result = execute_run(sc, tmp_path / cohost)
+        assert result.status == "completed", result.reason
+        if detailed == 0:
+            assert result.kpis["windows"] < 100 if cohost == "core" else result.kpis["windows"] > 2000
+        tables[cohost] = {name: pq.read_table(result.run_dir / f"{name}.parquet").sort_by(keys).to_pylist()
+                          for name, keys in (("packets", "packet_id"),
+                                            ("tasks", [("cell", "ascending"), ("task_id", "ascending")]))}
+    assert tables["core"] == tables["none"]
+    assert len(tables["core"]["packets"]) > 1000
+
+
 def _run_with_fault(tmp_path: Path, victim: str, fault: signal.Signals, overrides: list[str]):
     sc = load_scenario(SMOKE, ["duration_s=20", *overrides])
     launcher = ProcessLauncher()
@@ -76,9 +97,11 @@ def _run_with_fault(tmp_path: Path, victim: str, fault: signal.Signals, override
     return result, time.monotonic() - struck["at"]
 
 
-@pytest.mark.parametrize("victim", ["physics", "netsim", "edge", "camera-1", "robot-0"])
-def test_killing_a_federate_fails_the_run_quickly_naming_it(tmp_path: Path, victim: str) -> None:
-    result, elapsed = _run_with_fault(tmp_path, victim, signal.SIGKILL, [])
+@pytest.mark.parametrize("victim,overrides", [("core", []), ("netsim", ["cohost=none"]), ("edge", []),
+                                              ("camera-1", []), ("robot-0", [])])
+def test_killing_a_federate_fails_the_run_quickly_naming_it(tmp_path: Path, victim: str,
+                                                            overrides: list[str]) -> None:
+    result, elapsed = _run_with_fault(tmp_path, victim, signal.SIGKILL, overrides)
     assert result.status == "failed"
     assert result.kpis["failed_federate"] == victim and victim in (result.reason or "")
     assert elapsed < 15

@@ -1,0 +1,149 @@
+"""Several federates served by one process as one participant of the window protocol.
+
+A ``FederateGroup`` hosts member federates (e.g. physics, netsim and the abstract loops, which
+exchange messages every window and have no compute node to emulate) and merges their event
+queues: in each window it processes, across all members, the earliest event first. A message
+from one member to another is handed over in the process -- encoded and decoded as on the wire,
+but with no bus, no barrier and no other process to wake -- and needs only to arrive after the end
+of the scenario's window (``window_us``) in which it was sent, as between separate federates.
+So each member processes exactly the inputs and events it would process on its own, in the same
+(t_us, source, sequence) order, and sends the same messages.
+
+What changes is the protocol around them. The conductor sees one participant (the group's
+name), whose ``done`` counts only the messages sent outside the group. It also reports the
+group's horizon: the earliest time at which a member may send something outside the group (each
+member knows its own: ``Federate.external_horizon_us``). While the group is the only participant
+with anything to do, the conductor may give it a window up to that horizon, longer than
+``window_us``: the conductor and the group then meet once per long window instead of once per
+slot, with the same result. With no detailed loop the horizon never comes.
+
+Each member keeps its own records, trace hash and ``stopped`` report; a member that fails fails
+the group's window with the member's name.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from fabric import keys
+from fabric.federate import EXIT_FAILED, Federate, FederateContext, MessageRejected
+from fabric.messages import Advance, Done, Message, decode_data
+
+log = logging.getLogger(__name__)
+
+
+class FederateGroup(Federate):
+    """Serves ``members`` (built on this group's bus) as the participant ``ctx.name``."""
+
+    role = "group"
+
+    def __init__(self, ctx: FederateContext, bus: Any, members: list[Federate]) -> None:
+        super().__init__(ctx, bus)
+        self.members = {m.name: m for m in members}
+        names = frozenset(self.members)
+        for m in members:
+            m.cohosted = names
+            m.deliver_local = self._deliver_local
+        self._current: Federate | None = None  # the member processing, to name it when it fails
+
+    def _deliver_local(self, raw: bytes) -> None:
+        for msg in decode_data(raw):
+            self.members[msg.dst].accept(msg)
+
+    def accept(self, msg: Message) -> None:
+        member = self.members.get(msg.dst)
+        if member is None:
+            raise MessageRejected(f"{self.name}: data message for {msg.dst!r}, which this group does not host")
+        member.accept(msg)
+
+    # ---- protocol -----------------------------------------------------------------------------
+    def connect(self) -> None:
+        run = self.ctx.run_id
+        for m in self.members.values():
+            for plane in m.data_planes:
+                self.bus.subscribe(keys.inbox(run, plane, m.name), self._enqueue("data"))
+            self.bus.declare_token(keys.alive(run, m.name))
+        self.bus.subscribe(keys.advance(run), self._enqueue("advance"))
+        self.bus.subscribe(keys.stop(run), self._enqueue("stop"))
+        self.bus.watch_liveliness(keys.coordinator_alive(run), self._on_coordinator)
+        self.bus.declare_token(keys.alive(run, self.name))
+
+    def setup(self) -> None:
+        for m in self.members.values():
+            m.setup()
+
+    def flush_outbox(self) -> None:
+        for m in self.members.values():
+            m.flush_outbox()
+
+    def close(self) -> None:
+        for m in self.members.values():
+            try:
+                m.close()
+            except Exception:
+                log.exception("%s: closing %s failed", self.name, m.name)
+
+    def process_window(self, adv: Advance) -> Done:
+        members = list(self.members.values())
+        t_end = adv.t_end_us
+        for m in members:
+            m.begin_window(adv)
+        while True:
+            best, best_key = None, None
+            for m in members:
+                k = m.next_event_key()
+                if k is not None and k[0] < t_end and (best_key is None or k < best_key):
+                    best, best_key = m, k
+            if best is None:
+                break
+            self._current = best
+            t0 = time.perf_counter()
+            best.process_next()
+            best._busy_s += time.perf_counter() - t0
+        for m in members:
+            self._current = m
+            m.end_window(adv)
+        self._current = None
+        self._window = adv.window
+        self.window_end = t_end
+        self.now = max(m.now for m in members)
+        sent: dict[str, int] = {}
+        for m in members:
+            for dst, n in m._sent_to.items():
+                if dst not in self.members:
+                    sent[dst] = sent.get(dst, 0) + n
+        earliest = [m._earliest_sent for m in members if m._earliest_sent is not None]
+        nexts = [k[0] for m in members if (k := m.next_event_key()) is not None]
+        horizons = [m.external_horizon_us() for m in members]
+        horizon = None if None in horizons else min(h for h in horizons if h is not None)
+        return Done(federate=self.name, window=adv.window, t_end_us=t_end, sent_to=sent,
+                    next_event_us=min(nexts, default=None), earliest_sent_us=min(earliest, default=None),
+                    horizon_us=horizon)
+
+    def _fail(self, pending: Advance | None, error: str) -> int:
+        """Report the failure under the name of the member that failed (if one did)."""
+        name = self._current.name if self._current is not None else self.name
+        window = pending.window if pending is not None else self._window
+        t_end = pending.t_end_us if pending is not None else self.window_end
+        done = Done(federate=name, window=window, t_end_us=t_end, sent_to={}, next_event_us=None,
+                    earliest_sent_us=None, error=error)
+        self.bus.publish(keys.done(self.ctx.run_id, self.name), done.encode())
+        self._close_records()
+        return EXIT_FAILED
+
+    def _stop(self, reason: str, t_us: int) -> int:
+        if self._stopped:
+            return 0
+        self._stopped = True
+        for m in self.members.values():
+            try:
+                m._stop(reason, t_us)
+            except Exception:
+                log.exception("%s: stopping %s failed", self.name, m.name)
+        return 0
+
+    def _close_records(self, collect: bool = True, upto_us: int | None = None) -> None:
+        for m in self.members.values():
+            m._close_records(collect, upto_us)

@@ -1,0 +1,105 @@
+"""Federates served as one group (``fabric.group``): every member processes and sends exactly what
+it would on its own, also in the long windows a group is given up to its horizon; failures name
+the member."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+from test_conductor import Pinger, W
+
+from coordinator.conductor import Conductor, RunFailed
+from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.federate import NEVER_US, Federate, FederateContext
+from fabric.group import FederateGroup
+from scenario.schema import parse_scenario
+
+TICKS = {"a": [0, 3000, 7000, 20_000], "b": [0, 5000, 5000], "c": [2000, 9000], "d": [1000, 30_000]}
+
+
+class Promising(Pinger):
+    """A pinger that promises to send nothing outside its group (true when its peers are members)."""
+
+    def external_horizon_us(self) -> int | None:
+        return NEVER_US
+
+
+class Breaker(Pinger):
+    """A pinger that raises at b's second tick."""
+
+    def tick(self) -> None:
+        if self.name == "b" and self.now > 0:
+            raise KeyError("broken on purpose")
+        super().tick()
+
+
+def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
+        peers: dict[str, list[str]] | None = None, kind: type[Pinger] = Pinger,
+        ) -> tuple[Conductor, dict[str, Pinger], dict[str, str]]:
+    """Run the pingers of TICKS, those in ``grouped`` as the group ``g``; their logs and the
+    stopped reports' trace hashes."""
+    hub = InMemoryHub()
+    sc = parse_scenario({"duration_s": 0.05})
+    names = sorted(TICKS)
+    feds = {n: kind(FederateContext(n, "t1", sc, tmp_path / n), InMemoryBus(hub),
+                    (peers or {}).get(n, [p for p in names if p != n]), TICKS[n], latency_us)
+            for n in names}
+    serving: list[Federate] = [f for n, f in feds.items() if n not in grouped]
+    groups = {}
+    if grouped:
+        group_bus = InMemoryBus(hub)
+        members = [kind(FederateContext(n, "t1", sc, tmp_path / n), group_bus,
+                        (peers or {}).get(n, [p for p in names if p != n]), TICKS[n], latency_us)
+                   for n in grouped]
+        feds.update({m.name: m for m in members})
+        serving.append(FederateGroup(FederateContext("g", "t1", sc, tmp_path / "g"), group_bus, members))
+        groups = {"g": list(grouped)}
+    participants = sorted([n for n in names if n not in grouped] + (["g"] if grouped else []))
+    conductor = Conductor(InMemoryBus(hub), "t1", participants, W, 50_000, window_timeout_s=5, groups=groups,
+                          long_window_us=20 * W)
+    threads = [threading.Thread(target=f.serve, daemon=True) for f in serving]
+    for t in threads:
+        t.start()
+    conductor.wait_ready(5)
+    try:
+        conductor.run()
+    finally:
+        stopped = conductor.stop("completed", timeout_s=5)
+        for t in threads:
+            t.join(5)
+    return conductor, feds, {n: s.trace_hash for n, s in stopped.items()}
+
+
+def test_members_process_and_send_what_they_would_alone(tmp_path: Path) -> None:
+    _, alone, alone_traces = run(tmp_path / "alone", [])
+    conductor, grouped, traces = run(tmp_path / "grouped", ["a", "b", "c"])
+    assert sorted(traces) == ["a", "b", "c", "d"]  # every member reports for itself
+    for n in TICKS:
+        assert grouped[n].log == alone[n].log, n
+    assert traces == alone_traces  # same windows: the same events and the same bytes sent
+
+
+def test_a_group_that_sends_nothing_out_takes_long_windows_with_the_same_result(tmp_path: Path) -> None:
+    # a, b, c talk only to each other; d has its own ticks.
+    peers = {"a": ["b", "c"], "b": ["a", "c"], "c": ["a", "b"], "d": []}
+    base, alone, _ = run(tmp_path / "alone", [], peers=peers)
+    long, grouped, _ = run(tmp_path / "grouped", ["a", "b", "c"], peers=peers, kind=Promising)
+    for n in TICKS:
+        assert grouped[n].log == alone[n].log, n
+    assert long.windows < base.windows / 2
+
+
+def test_a_member_sending_out_of_a_long_window_fails_the_run(tmp_path: Path) -> None:
+    # c promises to send nothing out, but sends to d: its message would land inside the long window.
+    peers = {"a": ["b"], "b": ["a"], "c": ["d"], "d": []}
+    with pytest.raises(RunFailed, match="c: ping to d delivered at .* inside the window") as err:
+        run(tmp_path, ["a", "b", "c"], peers=peers, kind=Promising)
+    assert err.value.federate == "c"
+
+
+def test_a_failing_member_is_named(tmp_path: Path) -> None:
+    with pytest.raises(RunFailed, match="KeyError") as err:
+        run(tmp_path, ["a", "b", "c"], kind=Breaker)
+    assert err.value.federate == "b"
