@@ -23,6 +23,7 @@ the group's window with the member's name.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import time
 from typing import Any
@@ -47,6 +48,9 @@ class FederateGroup(Federate):
             m.cohosted = names
             m.deliver_local = self._deliver_local
         self._current: Federate | None = None  # the member processing, to name it when it fails
+        # Delivery times of the messages from outside not yet processed: a member's horizon
+        # holds only until one of them arrives, which may make it send at once.
+        self._outside_pending: list[int] = []
 
     def _deliver_local(self, raw: bytes) -> None:
         for msg in decode_data(raw):
@@ -57,6 +61,7 @@ class FederateGroup(Federate):
         if member is None:
             raise MessageRejected(f"{self.name}: data message for {msg.dst!r}, which this group does not host")
         member.accept(msg)
+        heapq.heappush(self._outside_pending, msg.t_us)
 
     # ---- protocol -----------------------------------------------------------------------------
     def connect(self) -> None:
@@ -118,6 +123,11 @@ class FederateGroup(Federate):
         nexts = [k[0] for m in members if (k := m.next_event_key()) is not None]
         horizons = [m.external_horizon_us() for m in members]
         horizon = None if None in horizons else min(h for h in horizons if h is not None)
+        pending = self._outside_pending
+        while pending and pending[0] < t_end:
+            heapq.heappop(pending)
+        if horizon is not None and pending:
+            horizon = min(horizon, pending[0])
         return Done(federate=self.name, window=adv.window, t_end_us=t_end, sent_to=sent,
                     next_event_us=min(nexts, default=None), earliest_sent_us=min(earliest, default=None),
                     horizon_us=horizon)

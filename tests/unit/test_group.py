@@ -14,6 +14,7 @@ from coordinator.conductor import Conductor, RunFailed
 from fabric.bus import InMemoryBus, InMemoryHub
 from fabric.federate import NEVER_US, Federate, FederateContext
 from fabric.group import FederateGroup
+from fabric.messages import Advance, Done, Message
 from scenario.schema import parse_scenario
 
 TICKS = {"a": [0, 3000, 7000, 20_000], "b": [0, 5000, 5000], "c": [2000, 9000], "d": [1000, 30_000]}
@@ -103,3 +104,21 @@ def test_a_failing_member_is_named(tmp_path: Path) -> None:
     with pytest.raises(RunFailed, match="KeyError") as err:
         run(tmp_path, ["a", "b", "c"], kind=Breaker)
     assert err.value.federate == "b"
+
+
+def test_a_message_from_outside_bounds_the_horizon_until_it_is_processed(tmp_path: Path) -> None:
+    # A member may answer a message from outside as soon as it arrives: the group promises
+    # nothing beyond a pending one's delivery time, whatever its members promise.
+    sc = parse_scenario({"duration_s": 0.05})
+    bus = InMemoryBus(InMemoryHub())
+    member = Promising(FederateContext("a", "t1", sc, tmp_path / "a"), bus, [], [], W)
+    group = FederateGroup(FederateContext("g", "t1", sc, tmp_path / "g"), bus, [member])
+    group.setup()
+    group.accept(Message(7 * W, "d", "a", 0, "sense", "ping"))
+
+    def window(i: int, start: int, end: int) -> Done:
+        return group.process_window(Advance(window=i, t_start_us=start, t_end_us=end, expected_in={}))
+
+    assert window(0, 0, W).horizon_us == 7 * W
+    assert window(1, W, 8 * W).horizon_us == NEVER_US  # delivered: only the members' promise is left
+    assert member.log == [(7 * W, "d", 0, "ping")]
