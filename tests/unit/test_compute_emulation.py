@@ -144,7 +144,11 @@ def test_a_job_is_charged_its_own_cpu_time_whatever_else_the_process_runs(load: 
             ratios.append(duration[True] / duration[False])
             for active in (False, True):
                 process_cpu[active] += process[active]
-    assert statistics.median(ratios) == pytest.approx(1.0, abs=0.05)
+    # Charged the process's CPU time, a loaded job would count much of the load thread's time
+    # too (x1.5-1.6 with the burning thread on an idle 2-core host). Its own time still grows a
+    # little: the two cores of a small VM may be threads of one physical core, and a busy
+    # sibling slows the job itself (up to 8% seen).
+    assert statistics.median(ratios) == pytest.approx(1.0, abs=0.15)
     # The other threads really ran alongside: the process CPU clock (what jobs used to be
     # charged) grew. By how much depends on how often the host lets the load thread run beside
     # the job (10-25% on an idle 2-core host, a few % when other processes take the second
