@@ -37,14 +37,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from coordinator.run import execute_run
+from coordinator.run import execute_run, federate_specs
 from netsim.standalone import run_uplink_cameras
 from scenario.schema import load_scenario
 from services.main import PROFILE_DIR_ENV
 
 ROOT = Path(__file__).parents[1]
 CASES = ("k0", "k1", "netsim")
-CORE_MEMBERS = ("physics", "netsim", "loops")  # coordinator.run.CORE_ROLES' federates
 
 
 def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path,
@@ -71,10 +70,12 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
     windows_wall = float(k.get("windows_wall_s") or run_wall)
     # A group's members share one thread: the group's processing time is theirs added up.
     process_busy = dict(busy)
-    if cohost == "core":
-        members = [n for n in busy if n in CORE_MEMBERS]
-        process_busy = {n: b for n, b in busy.items() if n not in members}
-        process_busy["core (" + ", ".join(members) + ")"] = sum(busy[n] for n in members)
+    for spec in federate_specs(sc):
+        members = [n for n, _ in spec.members if n in busy]
+        if members:
+            for n in members:
+                del process_busy[n]
+            process_busy[f"{spec.name} ({', '.join(sorted(members))})"] = sum(busy[n] for n in members)
     busiest = max(process_busy.values(), default=0.0)
     return {
         "status": r.status, "reason": r.reason, "loops": loops, "detailed_loops": detailed,

@@ -505,9 +505,9 @@ class Federate:
         finally:
             self._close_records(collect=False, upto_us=self.window_end)
         summary["busy_wall_s"] = round(self._busy_s, 3)
-        # The serving thread's CPU; a group's members share one thread, where the time spent
-        # processing each member's events is the closest figure of its own.
-        summary["cpu_s"] = round(time.thread_time(), 3) if self.deliver_local is None else summary["busy_wall_s"]
+        # The process's CPU; a group's members share one process (and thread), where the time
+        # spent processing each member's events is the closest figure of its own.
+        summary["cpu_s"] = round(time.process_time(), 3) if self.deliver_local is None else summary["busy_wall_s"]
         summary["peak_rss_mb"] = round(peak_rss_mb(), 1)
         summary["records"] = self.records_written()
         record = Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,

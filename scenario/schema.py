@@ -262,8 +262,8 @@ class Scenario(Strict):
     cohost: Literal["core", "none"] = Field(
         default="core",
         description="core: physics, netsim and the abstract loops (the federates without a compute "
-                    "node profile) share one process or container, a thread each, their messages to "
-                    "each other carried in memory; none: every federate in a process of its own. "
+                    "node profile) share one process or container and its serving thread, their "
+                    "events merged in time order and their messages to each other carried in memory; none: every federate in a process of its own. "
                     "What is simulated is the same either way")
     duration_s: float = Field(default=10.0, gt=0, le=86400, description="simulated duration, s")
     window_us: int = Field(default=1000, ge=10, description="lookahead window W, us")

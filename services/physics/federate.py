@@ -49,7 +49,6 @@ class PhysicsFederate(Federate):
         self.schedule(0, self._publish_states)
         if self.detailed:
             self.next_out["states"] = 0
-        if self.detailed:
             # The renderer (GL context, shader compilation) is made before the run starts: on a
             # loaded host its first frame takes seconds, which the first window would spend.
             self.world.render(self.detailed[0], sc.camera.width_px, sc.camera.height_px)
