@@ -90,7 +90,10 @@ def _hall_xml(sc: Scenario) -> str:
     ts = sc.physics_timestep_us / 1e6
     return f"""<mujoco model="cosim5g_hall">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{ts}" integrator="implicitfast" cone="elliptic"/>
+  <!-- sleep: parked pool parts sleep, so stepping skips them (World._may_sleep) -->
+  <option timestep="{ts}" integrator="implicitfast" cone="elliptic">
+    <flag sleep="enable"/>
+  </option>
   <visual>
     <global offwidth="{max(sc.camera.width_px, 640)}" offheight="{max(sc.camera.height_px, 480)}"/>
     <quality shadowsize="1024"/>

@@ -182,6 +182,12 @@ class Federate:
         (``NEVER_US``: it never does); None (the default): no promise, it may at any time."""
         return None
 
+    def work_ahead(self, until_us: int) -> None:
+        """In a group: the group's thread turns to the other members' events. A member may start,
+        in a background thread, the work its next event would begin with, if that work depends on
+        nothing with a time before ``until_us`` that it has not processed yet: no message from
+        another member can arrive before then. Its next event must wait for that work to end."""
+
     def collect_records(self) -> None:
         """Move records kept elsewhere (e.g. in a model) into the tables; called before every
         flush and before ``finish``."""

@@ -17,6 +17,11 @@ with anything to do, the conductor may give it a window up to that horizon, long
 ``window_us``: the conductor and the group then meet once per long window instead of once per
 slot, with the same result. With no detailed loop the horizon never comes.
 
+After each of a member's events the group offers it ``work_ahead``: until the end of that event's
+base window no message from another member can reach it, so work its next event would begin with
+may start at once in a background thread (physics steps the world there while the other members'
+events run: ``mj_step`` releases the GIL).
+
 Each member keeps its own records, trace hash and ``stopped`` report; a member that fails fails
 the group's window with the member's name.
 """
@@ -93,6 +98,7 @@ class FederateGroup(Federate):
     def process_window(self, adv: Advance) -> Done:
         members = list(self.members.values())
         t_end = adv.t_end_us
+        base = self.base_window_us
         for m in members:
             m.begin_window(adv)
         while True:
@@ -106,6 +112,9 @@ class FederateGroup(Federate):
             self._current = best
             t0 = time.perf_counter()
             best.process_next()
+            # A message from another member sent now is delivered at the end of this base
+            # window at the earliest.
+            best.work_ahead((best.now // base + 1) * base)
             best._busy_s += time.perf_counter() - t0
         for m in members:
             self._current = m

@@ -7,6 +7,8 @@ Sensor readout and actuation are local wires with fixed latencies (>= the window
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import cv2
@@ -47,11 +49,46 @@ class PhysicsFederate(Federate):
             if i in self.detailed:
                 self.next_out[f"frame-{i}"] = first
         self.schedule(0, self._publish_states)
+        # Stepping ahead in a group (``work_ahead``): the thread and the step it runs, if any.
+        self._stepper: ThreadPoolExecutor | None = None
+        self._ahead: Future[None] | None = None
         if self.detailed:
             self.next_out["states"] = 0
             # The renderer (GL context, shader compilation) is made before the run starts: on a
             # loaded host its first frame takes seconds, which the first window would spend.
             self.world.render(self.detailed[0], sc.camera.width_px, sc.camera.height_px)
+
+    # ---- stepping ahead -----------------------------------------------------------------------
+    def work_ahead(self, until_us: int) -> None:
+        """Step the world in the background up to where the next event would step it first (at
+        most ``until_us``): every event begins with ``advance_to(now)`` and every input before
+        ``until_us`` is here already, so the steps are the same. ``mj_step`` releases the GIL, so
+        it runs beside the other members' events on the second core."""
+        nxt = self.next_event_key()
+        target = until_us if nxt is None else min(nxt[0], until_us)
+        if self._ahead is not None or self.world.t_us + self.step_us > target:
+            return
+        if self._stepper is None:
+            self._stepper = ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-step")
+        started = threading.Event()
+        self._ahead = self._stepper.submit(self._step_to, target, started)
+        # Wait until the step holds the GIL, so that it starts now and not once this thread
+        # next lets go of it; it releases the GIL inside mj_step.
+        started.wait()
+
+    def _step_to(self, t_us: int, started: threading.Event) -> None:
+        started.set()
+        self.world.advance_to(t_us)
+
+    def _settle(self) -> None:
+        """Wait for the step running ahead, if any (its error is raised here)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            ahead.result()
+
+    def process_next(self) -> None:
+        self._settle()
+        super().process_next()
 
     # ---- events -------------------------------------------------------------------------------
     def _spawn(self, cell: int, part: dict[str, float]) -> None:
@@ -128,14 +165,19 @@ class PhysicsFederate(Federate):
                 self.tasks_placed += bool(r["success"])
 
     def close(self) -> None:
-        world = getattr(self, "world", None)  # absent when setup failed
+        stepper = getattr(self, "_stepper", None)  # absent when setup failed
+        if stepper is not None:
+            stepper.shutdown(wait=True)
+        world = getattr(self, "world", None)
         if world is not None:
             world.close()
 
     def collect_records(self) -> None:
+        self._settle()
         self._record_tasks(self.world.take_ended())
 
     def finish(self, reason: str) -> dict[str, Any]:
+        self._settle()
         self.world.advance_to(min(self.now, self.scenario.duration_us))
         self._record_tasks(self.world.finish())
         return {"tasks": self.tasks_ended, "placed": self.tasks_placed,

@@ -36,6 +36,13 @@ class Breaker(Pinger):
         super().tick()
 
 
+class Ahead(Pinger):
+    """A pinger that records the bounds up to which the group lets it work ahead."""
+
+    def work_ahead(self, until_us: int) -> None:
+        self.__dict__.setdefault("ahead", []).append((self.now, until_us))
+
+
 def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
         peers: dict[str, list[str]] | None = None, kind: type[Pinger] = Pinger,
         ) -> tuple[Conductor, dict[str, Pinger], dict[str, str]]:
@@ -122,3 +129,15 @@ def test_a_message_from_outside_bounds_the_horizon_until_it_is_processed(tmp_pat
     assert window(0, 0, W).horizon_us == 7 * W
     assert window(1, W, 8 * W).horizon_us == NEVER_US  # delivered: only the members' promise is left
     assert member.log == [(7 * W, "d", 0, "ping")]
+
+
+def test_a_member_may_work_ahead_up_to_the_end_of_its_base_window(tmp_path: Path) -> None:
+    # After each of a member's events, the group offers it the time until which no message from
+    # another member can reach it: the end of the base window of that event.
+    _, alone, _ = run(tmp_path / "alone", [], kind=Ahead)
+    _, grouped, _ = run(tmp_path / "grouped", ["a", "b", "c"], kind=Ahead)
+    for n in "abc":
+        ahead = grouped[n].__dict__["ahead"]
+        assert ahead and all(until == (now // W + 1) * W for now, until in ahead), n
+        assert grouped[n].log == alone[n].log, n
+    assert all("ahead" not in f.__dict__ for f in alone.values())  # served alone: never offered

@@ -3,6 +3,8 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 
 from __future__ import annotations
 
+from typing import Any
+
 import mujoco
 import numpy as np
 import pytest
@@ -172,6 +174,45 @@ def test_part_spreads_are_validated() -> None:
 
 
 # ---- picking --------------------------------------------------------------------------------------
+class SnapshotWorld(World):
+    """A world that keeps every body's pose after each ``advance_to``, with sleeping on or off."""
+
+    sleep = True
+
+    def __init__(self, sc: Any) -> None:
+        super().__init__(sc)
+        bit = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+        self.model.opt.enableflags = self.model.opt.enableflags | bit if self.sleep else self.model.opt.enableflags & ~bit
+        self.poses: list[tuple[int, bytes]] = []
+
+    def advance_to(self, t_us: int) -> None:
+        super().advance_to(t_us)
+        d = self.data
+        self.poses.append((self.t_us, d.qpos.tobytes() + d.qvel.tobytes() + d.xpos.tobytes() + d.xquat.tobytes()))
+
+
+def test_parked_parts_sleep_and_change_nothing() -> None:
+    """Only parked pool parts sleep (the hall steps faster); every body's pose and velocity after
+    every step is that of stepping with sleeping off, to the bit, spawns and placements included."""
+    sc = parse_scenario({"loops": 4, "detailed_loops": 0, "duration_s": 10.0, "seed": 11})
+    runs = {}
+    for sleep in (False, True):
+        SnapshotWorld.sleep = sleep
+        world = SnapshotWorld(sc)
+        runs[sleep] = (world, run_ideal(sc, world=world))
+    (off, off_result), (on, on_result) = runs[False], runs[True]
+    hall = mujoco.MjModel.from_xml_string(build_mjcf(sc))
+    assert hall.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+    assert [t["outcome"] for t in on_result.tasks].count("placed") >= 8
+    assert on_result.tasks == off_result.tasks
+    assert len(on.poses) == len(off.poses) and on.poses == off.poses
+    parked = {on.model.body_treeid[c.obj_body[s]] for c in on.cells for s in c.free_slots}
+    in_play = {on.model.body_treeid[c.obj_body[s]] for c in on.cells for s in c.active}
+    assert parked and all(on.data.tree_asleep[t] >= 0 for t in parked)  # asleep
+    assert all(on.data.tree_asleep[t] < 0 for t in in_play)  # awake
+    assert on.data.nv_awake < on.model.nv
+
+
 def test_controller_places_every_part_with_ideal_poses() -> None:
     """Ground-truth pose at each camera frame, no delay: every part placed (>= 10 tasks)."""
     sc = parse_scenario({"loops": 4, "duration_s": 14, "cell": {**VARIED, "object_period_s": 3.0}})

@@ -97,6 +97,52 @@ def test_a_batch_is_the_one_from_pylist_builds(tmp_path: Path) -> None:
     assert written[0].schema == expected.schema and written[0].equals(expected)
 
 
+def columns(rows: list[dict[str, Any]]) -> dict[str, list[Any]]:
+    return {name: [r.get(name) for r in rows] for name in PACKETS.names}
+
+
+def test_rows_given_as_columns_write_what_appends_write(tmp_path: Path) -> None:
+    def batches(path: Path) -> list[list[dict[str, Any]]]:
+        return [b.to_pylist() for b in read_part(path)]
+
+    one = TableWriter(tmp_path / "one.arrows", PACKETS, "packets", lambda: 0, max_rows=4)
+    cols = TableWriter(tmp_path / "cols.arrows", PACKETS, "packets", lambda: 0, max_rows=4)
+    for chunk in ([0, 1], [2, 3, 4, 5, 6, 7, 8, 9, 10], [], [11], [12, 13, 14]):
+        rows = [packet(i, lost=i % 3 == 0) for i in chunk]
+        for r in rows:
+            one.append(r)
+        cols.extend_columns(columns(rows))
+        assert cols.buffered == one.buffered < 4 and cols.rows_written == one.rows_written
+    one.close()
+    cols.close()
+    assert batches(cols.path) == batches(one.path)
+    assert [len(b) for b in batches(cols.path)] == [4, 4, 4, 3]
+
+
+def test_rows_as_columns_and_one_by_one_keep_their_order(tmp_path: Path) -> None:
+    w = TableWriter(tmp_path / "mixed.arrows", PACKETS, "packets", lambda: 0, max_rows=100)
+    w.append(packet(0))
+    w.extend_columns({k: v for k, v in columns([packet(1), packet(2)]).items() if k != "lost_cause"})
+    w.extend([packet(3)])
+    w.extend_columns(columns([packet(4)]))
+    w.close()
+    rows, info = read_all(w.path)
+    assert [r["packet_id"] for r in rows] == [0, 1, 2, 3, 4] and info.complete
+    assert rows[1] == packet(1)  # a column not given is null
+
+
+def test_columns_that_do_not_fit_name_the_table_and_column(tmp_path: Path) -> None:
+    w = TableWriter(tmp_path / "bad.arrows", PACKETS, "packets", lambda: 0)
+    with pytest.raises(TableError, match="table packets: no column jitter_us"):
+        w.extend_columns({**columns([packet(0)]), "jitter_us": [4]})
+    with pytest.raises(TableError, match="table packets: columns of different lengths"):
+        w.extend_columns({"packet_id": [1, 2], "flow": ["f"]})
+    w.extend_columns({**columns([packet(1)]), "size_bytes": ["large"]})
+    with pytest.raises(TableError, match="table packets: a row does not fit the columns: column "
+                       "size_bytes"):
+        w.flush()
+
+
 def test_a_row_with_an_unknown_column_names_the_table_and_column(tmp_path: Path) -> None:
     w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: 0)
     w.append({**packet(0), "jitter_us": 4})
