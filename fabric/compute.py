@@ -325,6 +325,9 @@ class ComputeNode:
         self.core_speed = profile.cpus / self.cores  # reference cores per emulated core
         self._free_at = [0] * self.cores
         self._series: dict[str, tuple[Any, ...]] = {}
+        # Per job kind, what ``publish_metrics`` moves into the series: durations and queueing
+        # delays (s), CPU and throttled time (s, None: never read).
+        self._unpublished: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
         self._job_models: dict[str, JobModel] = {}
         self._rng = rng
         self.records: list[JobRecord] = []
@@ -378,18 +381,14 @@ class ComputeNode:
             duration = draw_model_us(self._job_model(kind), self._rng)
         end = start + duration
         self._free_at[core] = end
-        series = self._series.get(kind)
-        if series is None:  # a label lookup per job costs more than the observation itself
-            labels = (self.node, kind)
-            series = self._series[kind] = (metrics.JOB_DURATION.labels(*labels),
-                                           metrics.JOB_QUEUE.labels(*labels),
-                                           metrics.JOB_CPU.labels(*labels),
-                                           metrics.JOB_THROTTLED.labels(*labels))
-        series[0].observe(duration / 1e6)
-        series[1].observe((start - arrival_us) / 1e6)
-        series[2].inc(cpu_ns / 1e9)
+        pending = self._unpublished.get(kind)
+        if pending is None:
+            pending = self._unpublished[kind] = ([], [], [], [])
+        pending[0].append(duration / 1e6)
+        pending[1].append((start - arrival_us) / 1e6)
+        pending[2].append(cpu_ns / 1e9)
         if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
-            series[3].inc(max(0, throttled) / 1e6)
+            pending[3].append(max(0, throttled) / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
             queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu_ns // 1000,
@@ -398,6 +397,27 @@ class ComputeNode:
         if self.measured and arrival_us >= self._next_probe_us:
             self._probe(arrival_us)
         return result, end
+
+    def publish_metrics(self) -> None:
+        """Move the jobs run since the last call into the metric series, a kind at a time (the
+        federate calls it once a window: a lock per series, not per job and series)."""
+        for kind, (durations, queues, cpu, throttled) in self._unpublished.items():
+            if not durations:
+                continue
+            series = self._series.get(kind)
+            if series is None:
+                labels = (self.node, kind)
+                series = self._series[kind] = (metrics.JOB_DURATION.labels(*labels),
+                                               metrics.JOB_QUEUE.labels(*labels),
+                                               metrics.JOB_CPU.labels(*labels),
+                                               metrics.JOB_THROTTLED.labels(*labels))
+            metrics.observe_all(series[0], durations)
+            metrics.observe_all(series[1], queues)
+            series[2].inc(sum(cpu))
+            if throttled:
+                series[3].inc(sum(throttled))
+            for values in (durations, queues, cpu, throttled):
+                values.clear()
 
     def cpu_duration_us(self, cpu: CpuSample) -> float:
         """A job's duration on this node in host time: its CPU time over the node's speed, spread

@@ -214,6 +214,7 @@ class Federate:
             return
         jobs = self.table("jobs")
         for node in self._job_nodes:
+            node.publish_metrics()
             if node.records:
                 jobs.extend(node.record_dicts())
                 node.records.clear()
@@ -470,6 +471,8 @@ class Federate:
     def end_window(self, adv: Advance) -> None:
         """Publish what the window sent, count it, write the records when they are due."""
         self.flush_outbox()
+        for node in self._job_nodes:
+            node.publish_metrics()
         self._window_series.inc()
         self._event_series.inc(self._events - self._events_before)
         if adv.t_end_us >= self._next_flush_us:

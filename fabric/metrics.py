@@ -7,6 +7,9 @@ for every container); otherwise they are only collected in-process.
 from __future__ import annotations
 
 import os
+from bisect import bisect_left
+from collections import Counter as Tally
+from typing import Any
 
 from prometheus_client import Counter, Gauge, Histogram, start_http_server
 
@@ -34,6 +37,25 @@ PRB_UTILISATION = Gauge("cosim_netsim_prb_utilisation",
                         "Share of the PRBs of the last simulated second that carried data", ["direction"])
 TASKS = Counter("cosim_physics_tasks_total", "Pick-and-place tasks ended, by outcome", ["outcome"])
 LOOP_PDP = Gauge("cosim_loop_pdp", "Packet delivery probability the co-design policy set for a loop", ["loop"])
+
+
+def observe_many(histogram: Any, value: float, count: int) -> None:
+    """``count`` observations of ``value`` in a Histogram child, which has no bulk observe: its sum
+    and the bucket ``observe`` would pick (the first bound >= value), each updated once."""
+    histogram._sum.inc(value * count)
+    histogram._buckets[bisect_left(histogram._upper_bounds, value)].inc(count)
+
+
+def observe_all(histogram: Any, values: list[float]) -> None:
+    """An observation of each of ``values`` in a Histogram child: the same counts and sum as
+    ``observe`` one by one, each bucket and the sum updated once (a lock each, not a lock each a
+    value)."""
+    if not values:
+        return
+    bounds = histogram._upper_bounds
+    histogram._sum.inc(sum(values))
+    for bucket, n in Tally(bisect_left(bounds, v) for v in values).items():
+        histogram._buckets[bucket].inc(n)
 
 
 def serve_from_env() -> int | None:

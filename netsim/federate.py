@@ -9,7 +9,6 @@ the ``packets`` table as packets are decided: nothing per packet is kept past it
 
 from __future__ import annotations
 
-from bisect import bisect_left
 from collections import Counter
 from typing import Any
 
@@ -57,14 +56,6 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         elif isinstance(v, int | float):
             out[f"{prefix}{k}"] = v
     return out
-
-
-def _observe_many(histogram: Any, value: float, count: int) -> None:
-    """``count`` observations of ``value`` in a prometheus_client Histogram, which has no bulk
-    observe: its sum and the bucket ``observe`` would pick (the first bound >= value), updated
-    once."""
-    histogram._sum.inc(value * count)
-    histogram._buckets[bisect_left(histogram._upper_bounds, value)].inc(count)
 
 
 class NetsimFederate(Federate):
@@ -229,7 +220,7 @@ class NetsimFederate(Federate):
             if counts:
                 fates[link, "delivered"] += counts.total()
                 for latency, n in counts.items():
-                    _observe_many(self.latency_series[link], latency / 1e6, n)
+                    metrics.observe_many(self.latency_series[link], latency / 1e6, n)
 
     def _publish_counts(self) -> None:
         """Move the packet and byte counts since the last call into the metric series."""

@@ -3,10 +3,7 @@ federate's bulk histogram update counts as many ``observe`` calls."""
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Histogram
-
 from netsim.cell import FlowQos, Packet, PacketOutcome
-from netsim.federate import _observe_many
 from netsim.nr.cell import NrCell
 from netsim.standalone import camera_layout
 from scenario.nr import NrConfig
@@ -48,20 +45,3 @@ def test_enqueue_many_matches_enqueue() -> None:
     assert any(cause == "buffer_overflow" for _, _, cause in one_by_one)
     assert any(cause == "delay_budget" for _, _, cause in one_by_one)
     assert _run(True) == one_by_one
-
-
-def test_observe_many_equals_repeated_observe() -> None:
-    registry = CollectorRegistry()
-    bulk = Histogram("bulk", "", buckets=(0.001, 0.005, 0.1), registry=registry)
-    single = Histogram("single", "", buckets=(0.001, 0.005, 0.1), registry=registry)
-    for value, count in [(0.0, 1), (0.001, 3), (0.002, 2), (0.1, 1), (5.0, 4)]:
-        _observe_many(bulk, value, count)
-        for _ in range(count):
-            single.observe(value)
-
-    def samples(name: str) -> list[tuple[str, dict[str, str], float]]:
-        return [(s.name.removeprefix(name), s.labels, round(s.value, 12))
-                for m in registry.collect() if m.name == name
-                for s in m.samples if not s.name.endswith("_created")]
-
-    assert samples("bulk") == samples("single")
