@@ -7,8 +7,6 @@ Sensor readout and actuation are local wires with fixed latencies (>= the window
 from __future__ import annotations
 
 import logging
-import threading
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import cv2
@@ -18,6 +16,7 @@ from domain.sensor import frame_offset_us, sensor_depth_mm
 from domain.world import World, spawn_plan
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
+from services.physics.stepper import StepAhead
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +48,8 @@ class PhysicsFederate(Federate):
             if i in self.detailed:
                 self.next_out[f"frame-{i}"] = first
         self.schedule(0, self._publish_states)
-        # Stepping ahead in a group (``work_ahead``): the thread and the step it runs, if any.
-        self._stepper: ThreadPoolExecutor | None = None
-        self._ahead: Future[None] | None = None
+        # Stepping ahead in a group (``work_ahead``), made at the first offer.
+        self._stepper: StepAhead | None = None
         if self.detailed:
             self.next_out["states"] = 0
             # The renderer (GL context, shader compilation) is made before the run starts: on a
@@ -66,25 +64,15 @@ class PhysicsFederate(Federate):
         it runs beside the other members' events on the second core."""
         nxt = self.next_event_key()
         target = until_us if nxt is None else min(nxt[0], until_us)
-        if self._ahead is not None or self.world.t_us + self.step_us > target:
-            return
         if self._stepper is None:
-            self._stepper = ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-step")
-        started = threading.Event()
-        self._ahead = self._stepper.submit(self._step_to, target, started)
-        # Wait until the step holds the GIL, so that it starts now and not once this thread
-        # next lets go of it; it releases the GIL inside mj_step.
-        started.wait()
-
-    def _step_to(self, t_us: int, started: threading.Event) -> None:
-        started.set()
-        self.world.advance_to(t_us)
+            self._stepper = StepAhead(self.world.advance_to, f"{self.name}-step")
+        if not self._stepper.running and self.world.t_us + self.step_us <= target:
+            self._stepper.start(target)
 
     def _settle(self) -> None:
         """Wait for the step running ahead, if any (its error is raised here)."""
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None:
-            ahead.result()
+        if self._stepper is not None:
+            self._stepper.wait()
 
     def process_next(self) -> None:
         self._settle()
@@ -167,7 +155,7 @@ class PhysicsFederate(Federate):
     def close(self) -> None:
         stepper = getattr(self, "_stepper", None)  # absent when setup failed
         if stepper is not None:
-            stepper.shutdown(wait=True)
+            stepper.close()
         world = getattr(self, "world", None)
         if world is not None:
             world.close()

@@ -3,6 +3,7 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import mujoco
@@ -17,6 +18,7 @@ from domain.scene import build_mjcf, object_pool_size
 from domain.world import World, spawn_plan
 from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
+from services.physics.stepper import StepAhead
 
 # UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]
@@ -211,6 +213,34 @@ def test_parked_parts_sleep_and_change_nothing() -> None:
     assert parked and all(on.data.tree_asleep[t] >= 0 for t in parked)  # asleep
     assert all(on.data.tree_asleep[t] < 0 for t in in_play)  # awake
     assert on.data.nv_awake < on.model.nv
+
+
+def test_step_ahead_runs_each_call_in_its_thread_and_hands_back_its_error() -> None:
+    calls: list[tuple[int, str]] = []
+
+    def advance(t_us: int) -> None:
+        calls.append((t_us, threading.current_thread().name))
+        if t_us < 0:
+            raise ValueError("no such time")
+
+    stepper = StepAhead(advance, "physics-step")
+    stepper.wait()  # nothing running: returns at once
+    for t in (1000, 2000):
+        stepper.start(t)
+        assert stepper.running
+        with pytest.raises(RuntimeError, match="running already"):
+            stepper.start(t)
+        stepper.wait()
+        assert not stepper.running
+    stepper.start(-1)
+    with pytest.raises(ValueError, match="no such time"):
+        stepper.wait()
+    stepper.wait()  # the error is raised once
+    stepper.start(3000)
+    stepper.close()  # waits for the running call
+    assert calls == [(1000, "physics-step"), (2000, "physics-step"), (-1, "physics-step"),
+                     (3000, "physics-step")]
+    assert not stepper._thread.is_alive()
 
 
 def test_controller_places_every_part_with_ideal_poses() -> None:
