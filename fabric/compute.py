@@ -325,8 +325,8 @@ class ComputeNode:
         self.core_speed = profile.cpus / self.cores  # reference cores per emulated core
         self._free_at = [0] * self.cores
         self._series: dict[str, tuple[Any, ...]] = {}
-        # Per job kind, what ``publish_metrics`` moves into the series: durations and queueing
-        # delays (s), CPU and throttled time (s, None: never read).
+        # Per job kind, what ``publish_metrics`` moves into the series: durations, queueing
+        # delays, CPU and throttled time (s; throttled only where the cgroup is read).
         self._unpublished: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
         self._job_models: dict[str, JobModel] = {}
         self._rng = rng

@@ -138,16 +138,13 @@ class TableWriter:
         if len(lengths) > 1:
             raise TableError(f"table {self.name}: columns of different lengths {sorted(lengths)}")
         n = lengths.pop() if lengths else 0
-        if n and self._rows:
-            self.flush()  # rows given one by one go first, in their own batch
+        if n and (self._rows or (self._ncols and self._cols.keys() != columns.keys())):
+            self.flush()  # rows given one by one, or another set of columns: a batch of their own
         i = 0
         while i < n:
-            take = min(n - i, self.max_rows - self._ncols)
             if not self._ncols:
                 self._cols = {name: [] for name in columns}
-            if self._cols.keys() != columns.keys():
-                self.flush()  # another set of columns: one batch each
-                continue
+            take = min(n - i, self.max_rows - self._ncols)
             for name, values in columns.items():
                 self._cols[name].extend(values[i:i + take] if take < n else values)
             self._ncols += take
@@ -184,15 +181,7 @@ class TableWriter:
     def _batch(self, rows: list[dict[str, Any]]) -> pa.RecordBatch:
         """``RecordBatch.from_pylist(rows, schema)``, converted a column at a time (as it does)
         so that a value that does not fit names its column."""
-        arrays = []
-        for field in self.schema:
-            name = field.name
-            try:
-                arrays.append(pa.array([r.get(name) for r in rows], type=field.type))
-            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
-                raise TableError(f"table {self.name}: a row does not fit the columns: column "
-                                 f"{name} ({field.type}): {exc}") from exc
-        return pa.RecordBatch.from_arrays(arrays, schema=self.schema)
+        return self._column_batch({name: [r.get(name) for r in rows] for name in self.schema.names}, len(rows))
 
     def _column_batch(self, columns: dict[str, list[Any]], n: int) -> pa.RecordBatch:
         """The batch of ``n`` rows given as ``columns`` (a column not given is null)."""

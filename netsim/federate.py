@@ -15,6 +15,7 @@ from typing import Any
 from fabric import metrics
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
+from fabric.tables import PACKETS
 from netsim.cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
@@ -27,9 +28,6 @@ from netsim.cell import (
 from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
 
-# The packets table's columns, in the order ``_record`` fills them.
-PACKET_COLUMNS = ("packet_id", "flow", "ue", "dir", "size_bytes", "enqueue_us", "deliver_us", "latency_us",
-                  "lost_cause")
 # Bounds of a UE's urgency weight in the PF ranking (budgets 8x shorter or longer than the usual).
 MAX_URGENCY = 8.0
 
@@ -193,7 +191,9 @@ class NetsimFederate(Federate):
         bits = self.delivered_bits
         latencies: dict[str, Counter[int]] = {"ul": Counter(), "dl": Counter()}
         # A column at a time: the same rows and batches as a row a packet, without the dicts.
-        cols: dict[str, list[Any]] = {name: [] for name in PACKET_COLUMNS}
+        # (PACKETS' columns in their order: packet_id, flow, ue, dir, size_bytes, enqueue_us,
+        # deliver_us, latency_us, lost_cause)
+        cols: dict[str, list[Any]] = {name: [] for name in PACKETS.names}
         ids, flows, ues, dirs, sizes, enqueues, delivers, lats, causes = cols.values()
         for o in outcomes:
             p = o.packet
