@@ -151,11 +151,13 @@ class Federate:
         self._next_flush_us = FLUSH_EVERY_US
         self._coordinator_seen = False
         # Set by a ``fabric.group.FederateGroup`` hosting this federate: the names of the
-        # federates it hosts, and how a message to one of them is handed over (encoded). Such a
-        # message needs only to arrive after the end of the scenario's window in which it was
-        # sent (``base_window_us``): the group processes its federates' events in time order.
+        # federates it hosts, and how a message to one of them is handed over (the message
+        # itself: it is encoded for the trace hash, never decoded; a sender does not touch a
+        # body it has sent). Such a message needs only to arrive after the end of the
+        # scenario's window in which it was sent (``base_window_us``): the group processes its
+        # federates' events in time order.
         self.cohosted: frozenset[str] = frozenset()
-        self.deliver_local: Callable[[bytes], None] | None = None
+        self.deliver_local: Callable[[Message], None] | None = None
         self.base_window_us = ctx.scenario.window_us
         # Called (from any thread) when the coordinator is lost, with the reason: the process
         # entry point arms a hard exit there, in case the federate is stuck in a window.
@@ -284,7 +286,7 @@ class Federate:
         self._sent_by_plane[plane] += 1
         if local:
             assert self.deliver_local is not None
-            self.deliver_local(raw)
+            self.deliver_local(msg)
             return
         self._sent_to[dst] += 1
         if self._earliest_sent is None or t_us < self._earliest_sent:

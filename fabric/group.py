@@ -3,9 +3,10 @@
 A ``FederateGroup`` hosts member federates (e.g. physics, netsim and the abstract loops, which
 exchange messages every window and have no compute node to emulate) and merges their event
 queues: in each window it processes, across all members, the earliest event first. A message
-from one member to another is handed over in the process -- encoded and decoded as on the wire,
-but with no bus, no barrier and no other process to wake -- and needs only to arrive after the end
-of the scenario's window (``window_us``) in which it was sent, as between separate federates.
+from one member to another is handed over in the process -- the message object itself (it is
+encoded for the sender's trace hash, as on the wire, but not decoded), with no bus, no barrier and
+no other process to wake -- and needs only to arrive after the end of the scenario's window
+(``window_us``) in which it was sent, as between separate federates.
 So each member processes exactly the inputs and events it would process on its own, in the same
 (t_us, source, sequence) order, and sends the same messages.
 
@@ -35,7 +36,7 @@ from typing import Any
 
 from fabric import keys
 from fabric.federate import EXIT_FAILED, Federate, FederateContext, MessageRejected
-from fabric.messages import Advance, Done, Message, decode_data
+from fabric.messages import Advance, Done, Message
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +58,8 @@ class FederateGroup(Federate):
         # holds only until one of them arrives, which may make it send at once.
         self._outside_pending: list[int] = []
 
-    def _deliver_local(self, raw: bytes) -> None:
-        for msg in decode_data(raw):
-            self.members[msg.dst].accept(msg)
+    def _deliver_local(self, msg: Message) -> None:
+        self.members[msg.dst].accept(msg)
 
     def accept(self, msg: Message) -> None:
         member = self.members.get(msg.dst)

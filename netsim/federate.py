@@ -160,29 +160,52 @@ class NetsimFederate(Federate):
         # Deliveries without payload bytes go to each destination as one bundle per delivery
         # time, in the cell's order; one with bytes (a detailed camera's) goes on its own and
         # first sends what was bundled before it for that destination, which keeps the order.
-        bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]]]] = {}
+        # The packets of one ``packets`` message delivered together are one item, at the place
+        # of the last of them: the receiver acts when a frame's last packet is in, so it acts in
+        # the same order as with an item a packet.
+        bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]] | None]] = {}
+        merged: dict[tuple[str, int, int], int] = {}  # (dst, delivery, id(app)) -> item index
         outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
         if self.outside_in_cell:
             self.outside_in_cell -= sum(o.packet.ref[0] not in self.cohosted for o in outcomes)
         for outcome in outcomes:
-            if outcome.deliver_us is not None:
-                dst, app, blob, idx = outcome.packet.ref
-                body = dict(app)
-                if idx is not None:
-                    body["idx"] = idx
-                body["packet_id"] = outcome.packet.packet_id
-                if blob is None:
-                    bundles.setdefault((dst, outcome.deliver_us), []).append((app["type"], body))
-                    continue
-                for key in [k for k in bundles if k[0] == dst]:
-                    self.send_bundle(dst, "net", key[1], bundles.pop(key))
-                self.send(dst, "net", app["type"], outcome.deliver_us, body, blob)
-        for (dst, deliver_us), items in bundles.items():
-            self.send_bundle(dst, "net", deliver_us, items)
+            if outcome.deliver_us is None:
+                continue
+            dst, app, blob, idx = outcome.packet.ref
+            key = (dst, outcome.deliver_us)
+            if idx is not None:
+                items = bundles.setdefault(key, [])
+                group = (dst, outcome.deliver_us, id(app))
+                at = merged.get(group)
+                if at is None:
+                    item = (app["type"], {**app, "idx": [idx], "packet_ids": [outcome.packet.packet_id]})
+                else:
+                    item = items[at]
+                    items[at] = None
+                    assert item is not None
+                    item[1]["idx"].append(idx)
+                    item[1]["packet_ids"].append(outcome.packet.packet_id)
+                merged[group] = len(items)
+                items.append(item)
+                continue
+            body = {**app, "packet_id": outcome.packet.packet_id}
+            if blob is None:
+                bundles.setdefault(key, []).append((app["type"], body))
+                continue
+            for k in [k for k in bundles if k[0] == dst]:
+                self._send_items(dst, k[1], bundles.pop(k))
+            merged = {g: i for g, i in merged.items() if g[0] != dst}
+            self.send(dst, "net", app["type"], outcome.deliver_us, body, blob)
+        for (dst, deliver_us), pending in bundles.items():
+            self._send_items(dst, deliver_us, pending)
         self._publish_counts()
         if self.cell.has_pending():
             self._ensure_slot(self.now + self.slot_us)
+
+    def _send_items(self, dst: str, deliver_us: int, items: list[tuple[str, dict[str, Any]] | None]) -> None:
+        """Send a bundle's items, leaving out the places merged items moved from."""
+        self.send_bundle(dst, "net", deliver_us, [i for i in items if i is not None])
 
     def _record(self, outcomes: list[PacketOutcome]) -> None:
         """Count and record the fates of ``outcomes``. Latencies are slot multiples, so the

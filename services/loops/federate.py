@@ -97,7 +97,7 @@ class LoopsFederate(Federate):
         if msg.kind == "truth":
             self._camera_frame(lp, int(b["capture_us"]), b["objects"])
         elif msg.kind == "aframe":
-            self._frame_packet(lp, int(b["frame_id"]), int(b["n"]))
+            self._frame_packets(lp, int(b["frame_id"]), int(b["n"]), len(b["idx"]))
         elif msg.kind == "pose":
             lp.ctl.on_estimate(b["tracks"])
         elif msg.kind == "qos":
@@ -132,8 +132,10 @@ class LoopsFederate(Federate):
         })
 
     # ---- edge side ------------------------------------------------------------------------------
-    def _frame_packet(self, lp: AbstractLoop, fid: int, n: int) -> None:
-        got = lp.arrived.get(fid, 0) + 1
+    def _frame_packets(self, lp: AbstractLoop, fid: int, n: int, count: int) -> None:
+        """``count`` of frame ``fid``'s ``n`` packets arrived (netsim delivers a frame's packets of
+        one slot as one message); the frame goes to pose estimation when the last is in."""
+        got = lp.arrived.get(fid, 0) + count
         if got < n:
             lp.arrived[fid] = got
             return

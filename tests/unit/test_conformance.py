@@ -161,7 +161,7 @@ def netsim_inputs(sc: Scenario) -> list[Input]:
                 "app": {"type": "frame", "loop": 0, "frame_id": k, "capture_us": t - 3000, "idx": idx,
                         "n": 12}}, bytes([idx]) * 64))
         out.append(Input(enter + 2000, "loops", "net", "packets", {
-            "ue": "camera-1", "dir": "ul", "flow": "camera-1/video", "sizes": [1500, 900], "dst": "loops",
+            "ue": "camera-1", "dir": "ul", "flow": "camera-1/video", "sizes": [120, 80], "dst": "loops",
             "pdb_us": None, "app": {"type": "aframe", "loop": 1, "frame_id": k, "n": 2}}))
         out.append(Input(enter + 9000, "edge", "net", "packet", {
             "ue": "robot-0", "dir": "dl", "flow": "robot-0/pose", "size": 120, "dst": "robot-0",
@@ -179,7 +179,8 @@ def loops_inputs(sc: Scenario) -> list[Input]:
         # Every frame is kept (PDP 1): frame k's two packets arrive 30 ms after capture, in one
         # bundle as netsim delivers them.
         out.append(Input(t + 30_000, "netsim", "net", "bundle", {"items": [
-            ["aframe", {"type": "aframe", "loop": 1, "frame_id": k, "idx": idx, "n": 2, "packet_id": 2 * k + idx}]
+            ["aframe", {"type": "aframe", "loop": 1, "frame_id": k, "idx": [idx], "n": 2,
+                        "packet_ids": [2 * k + idx]}]
             for idx in range(2)]}))
     out += [Input(t + 1000, "physics", "sense", "joint_states",
                   {"t_us": t, "states": {"1": {"q": ARM_Q, "gripped": False}}})
@@ -407,8 +408,9 @@ def test_a_malformed_bundle_fails_it_naming_federate(tmp_path: Path) -> None:
 
 
 def test_netsim_takes_a_frame_as_one_message_and_bundles_deliveries(tmp_path: Path) -> None:
-    """A ``packets`` message enters one packet per size; deliveries without payload bytes reach
-    each destination as one bundle per delivery time, those with bytes one by one."""
+    """A ``packets`` message enters one packet per size, and its packets delivered in one slot
+    are one item; deliveries without payload bytes reach each destination as one bundle per
+    delivery time, those with bytes one by one."""
     netsim = next(c for c in CASES if c.name == "netsim")
     result = drive(netsim, tmp_path, arrival_seed=1, jump=False)
     assert result.error is None, result.error
@@ -417,9 +419,11 @@ def test_netsim_takes_a_frame_as_one_message_and_bundles_deliveries(tmp_path: Pa
     items = [b for o in to_loops for b in ([["aframe", o[6]]] if o[5] == "aframe" else o[6]["items"])]
     frames: dict[int, list[int]] = {}
     for kind, body in items:
-        assert kind == "aframe" and body["n"] == 2
-        frames.setdefault(body["frame_id"], []).append(body["idx"])
+        assert kind == "aframe" and body["n"] == 2 and len(body["idx"]) == len(body["packet_ids"])
+        frames.setdefault(body["frame_id"], []).extend(body["idx"])
     assert frames and all(sorted(ix) == [0, 1] for ix in frames.values()), frames
+    merged = [body for _, body in items if len(body["idx"]) == 2]
+    assert merged, "a frame's packets delivered in one slot are one item"
     times = [o[0] for o in to_loops]
     assert len(times) == len(set(times)), "one bundle per destination and delivery time"
     to_edge = [o for o in result.outputs if o[2] == "edge"]
