@@ -10,6 +10,7 @@ the ``packets`` table as packets are decided: nothing per packet is kept past it
 from __future__ import annotations
 
 from collections import Counter
+from operator import attrgetter
 from typing import Any
 
 from fabric import metrics
@@ -27,6 +28,10 @@ from netsim.cell import (
 )
 from netsim.nr.cell import NrCell
 from netsim.simple import SimpleCell
+
+_PACKET, _DELIVER, _CAUSE = attrgetter("packet"), attrgetter("deliver_us"), attrgetter("cause")
+_PACKET_ID, _FLOW, _UE = attrgetter("packet_id"), attrgetter("flow"), attrgetter("ue")
+_DIRECTION, _SIZE, _ENQUEUE = attrgetter("direction"), attrgetter("size_bytes"), attrgetter("enqueue_us")
 
 # Bounds of a UE's urgency weight in the PF ranking (budgets 8x shorter or longer than the usual).
 MAX_URGENCY = 8.0
@@ -178,11 +183,11 @@ class NetsimFederate(Federate):
                 items = bundles.setdefault(key, [])
                 group = (dst, outcome.deliver_us, id(app))
                 at = merged.get(group)
+                item: tuple[str, dict[str, Any]] | None
                 if at is None:
                     item = (app["type"], {**app, "idx": [idx], "packet_ids": [outcome.packet.packet_id]})
                 else:
-                    item = items[at]
-                    items[at] = None
+                    item, items[at] = items[at], None
                     assert item is not None
                     item[1]["idx"].append(idx)
                     item[1]["packet_ids"].append(outcome.packet.packet_id)
@@ -210,35 +215,27 @@ class NetsimFederate(Federate):
     def _record(self, outcomes: list[PacketOutcome]) -> None:
         """Count and record the fates of ``outcomes``. Latencies are slot multiples, so the
         histogram gets each distinct value once with its count rather than once a packet."""
+        # A column at a time (PACKETS' columns, in their order): the same rows and batches as a
+        # row a packet, without a dict or nine appends per packet.
+        packets = list(map(_PACKET, outcomes))
+        dirs = list(map(_DIRECTION, packets))
+        sizes = list(map(_SIZE, packets))
+        enqueues = list(map(_ENQUEUE, packets))
+        delivers = list(map(_DELIVER, outcomes))
+        causes = list(map(_CAUSE, outcomes))
+        lats = [None if t is None else t - e for t, e in zip(delivers, enqueues, strict=True)]
+        self.packets.extend_columns(dict(zip(PACKETS.names, (
+            list(map(_PACKET_ID, packets)), list(map(_FLOW, packets)), list(map(_UE, packets)), dirs,
+            sizes, enqueues, delivers, lats, causes), strict=True)))
         fates = self.fates
         bits = self.delivered_bits
         latencies: dict[str, Counter[int]] = {"ul": Counter(), "dl": Counter()}
-        # A column at a time: the same rows and batches as a row a packet, without the dicts.
-        # (PACKETS' columns in their order: packet_id, flow, ue, dir, size_bytes, enqueue_us,
-        # deliver_us, latency_us, lost_cause)
-        cols: dict[str, list[Any]] = {name: [] for name in PACKETS.names}
-        ids, flows, ues, dirs, sizes, enqueues, delivers, lats, causes = cols.values()
-        for o in outcomes:
-            p = o.packet
-            d = p.direction
-            deliver_us = o.deliver_us
-            if deliver_us is None:
-                fates[d, o.cause or "lost"] += 1
-                latency = None
+        for d, size, latency, cause in zip(dirs, sizes, lats, causes, strict=True):
+            if latency is None:
+                fates[d, cause or "lost"] += 1
             else:
-                bits[d] += 8 * p.size_bytes
-                latency = deliver_us - p.enqueue_us
+                bits[d] += 8 * size
                 latencies[d][latency] += 1
-            ids.append(p.packet_id)
-            flows.append(p.flow)
-            ues.append(p.ue)
-            dirs.append(d)
-            sizes.append(p.size_bytes)
-            enqueues.append(p.enqueue_us)
-            delivers.append(deliver_us)
-            lats.append(latency)
-            causes.append(o.cause)
-        self.packets.extend_columns(cols)
         for link, counts in latencies.items():
             if counts:
                 fates[link, "delivered"] += counts.total()

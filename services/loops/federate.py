@@ -113,7 +113,9 @@ class LoopsFederate(Federate):
         lp.frames_kept += 1
         fid = lp.frame_id
         lp.frame_id += 1
-        size = int(lp.size_rng.choice(self.frame_model.frame_bytes))
+        # The draw ``choice`` makes (one bounded integer), without its argument checks.
+        sizes = self.frame_model.frame_bytes
+        size = int(sizes[lp.size_rng.integers(0, len(sizes))])
         _, ready = lp.camera_cpu.run("compress", self.now, int, size)
         lp.truth[fid] = (capture_us, objects)
         self.schedule(ready, self._transmit, lp.index, fid, size)
