@@ -169,7 +169,7 @@ class NetsimFederate(Federate):
         # of the last of them: the receiver acts when a frame's last packet is in, so it acts in
         # the same order as with an item a packet.
         bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]] | None]] = {}
-        merged: dict[tuple[str, int, int], int] = {}  # (dst, delivery, id(app)) -> item index
+        places: dict[tuple[str, int], dict[int, int]] = {}  # per bundle: id(app) -> its item's index
         outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
         if self.outside_in_cell:
@@ -181,8 +181,8 @@ class NetsimFederate(Federate):
             key = (dst, outcome.deliver_us)
             if idx is not None:
                 items = bundles.setdefault(key, [])
-                group = (dst, outcome.deliver_us, id(app))
-                at = merged.get(group)
+                place = places.setdefault(key, {})
+                at = place.get(id(app))
                 item: tuple[str, dict[str, Any]] | None
                 if at is None:
                     item = (app["type"], {**app, "idx": [idx], "packet_ids": [outcome.packet.packet_id]})
@@ -191,7 +191,7 @@ class NetsimFederate(Federate):
                     assert item is not None
                     item[1]["idx"].append(idx)
                     item[1]["packet_ids"].append(outcome.packet.packet_id)
-                merged[group] = len(items)
+                place[id(app)] = len(items)
                 items.append(item)
                 continue
             body = {**app, "packet_id": outcome.packet.packet_id}
@@ -200,7 +200,7 @@ class NetsimFederate(Federate):
                 continue
             for k in [k for k in bundles if k[0] == dst]:
                 self._send_items(dst, k[1], bundles.pop(k))
-            merged = {g: i for g, i in merged.items() if g[0] != dst}
+                places.pop(k, None)
             self.send(dst, "net", app["type"], outcome.deliver_us, body, blob)
         for (dst, deliver_us), pending in bundles.items():
             self._send_items(dst, deliver_us, pending)
