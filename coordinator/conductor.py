@@ -149,13 +149,17 @@ class Conductor:
                       or ((nxt := next_event[f]) is not None and nxt < t_end)]
             alone = active[0] if len(active) == 1 else None
             if (alone is not None and expected[alone] == seen_in.get(alone)
-                    and (horizon := horizons.get(alone)) is not None and horizon > t_end):
+                    and (horizon := horizons.get(alone)) is not None
+                    and (horizon // self.window_us + 1) * self.window_us > t_end):
                 # The others have nothing to do and nothing coming before their next events; it
                 # has been sent nothing new (its horizon holds only until something arrives) and
-                # sends them nothing before its horizon: a long window, up to the earliest.
+                # sends them nothing before its horizon: a long window, up to the earliest. What
+                # it sends at its horizon arrives at the end of that base window at the earliest,
+                # so the window may take in the base window of the horizon.
                 others = [t for f, t in next_event.items() if f != alone and t is not None]
                 last_end = -(-self.end_us // self.window_us) * self.window_us  # as with short windows
-                limit = min([t_start + self.long_window_us, last_end, horizon, *others])
+                sends_arrive = (horizon // self.window_us + 1) * self.window_us
+                limit = min([t_start + self.long_window_us, last_end, sends_arrive, *others])
                 t_end = max(t_end, limit // self.window_us * self.window_us)
             adv = Advance(window=self.windows, t_start_us=t_start, t_end_us=t_end, expected_in=expected,
                           federates=None if len(active) == len(self.federates) else active)

@@ -149,7 +149,8 @@ class Done(ControlRecord):
     horizon_us: int | None = Field(
         default=None, description="no message to another participant will be sent before this time "
         "unless one arrives from another participant first (None: no such promise); a participant "
-        "alone with something to do may be given a window up to it")
+        "alone with something to do may be given a window up to the end of the base window that "
+        "holds it (what it sends then arrives no earlier)")
     error: str | None = Field(default=None, description="set when the federate failed")
 
 

@@ -89,6 +89,12 @@ class Cell(ABC):
     def has_pending(self) -> bool:
         """True while any buffer or HARQ process holds data, i.e. the next slot has work."""
 
+    def earliest_delivery_us(self, ue: str, direction: str) -> int | None:
+        """A lower bound on the start of the slot at whose end this cell may next deliver a packet
+        of ``ue`` in ``direction`` that it holds now, were nothing more enqueued; None: no bound
+        (the next slot may). A federate promises from it when it sends its next delivery."""
+        return None
+
     @abstractmethod
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
         """Change a flow's QoS (e.g. the co-design policy's latency budget L_r); ``ue`` names the

@@ -83,13 +83,22 @@ class NetsimFederate(Federate):
         # Counts go to their series once a slot, not once a packet (tens of thousands a second).
         self.fates: Counter[tuple[str, str]] = Counter()
         self.bits_published = dict(self.delivered_bits)
-        # Packets in the cell for a federate outside this one's group (``external_horizon_us``).
-        self.outside_in_cell = 0
+        # Packets in the cell for a federate outside this one's group, per (UE, direction)
+        # (``external_horizon_us``).
+        self.outside_in_cell: Counter[tuple[str, str]] = Counter()
 
     def external_horizon_us(self) -> int | None:
         # Deliveries are its only messages: while the cell holds none for a federate outside the
-        # group (the abstract loops' packets go back to their group), it sends nothing out.
-        return self.now if self.outside_in_cell else NEVER_US
+        # group (the abstract loops' packets go back to their group), it sends nothing out. Else
+        # the earliest slot that may deliver one of those, sent at that slot's start.
+        horizon = NEVER_US
+        for (ue, direction), n in self.outside_in_cell.items():
+            if n:
+                at = self.cell.earliest_delivery_us(ue, direction)
+                if at is None:
+                    return self.now
+                horizon = min(horizon, at)
+        return horizon
 
     def on_message(self, msg: Message) -> None:
         if msg.kind == "qos_ctl":
@@ -123,7 +132,7 @@ class NetsimFederate(Federate):
         if refused:
             self._record(refused)
         if dst not in self.cohosted:
-            self.outside_in_cell += len(packets) - len(refused)
+            self.outside_in_cell[ue, direction] += len(packets) - len(refused)
         self._ensure_slot(msg.t_us)
 
     def _lower_layer_qos(self, b: dict[str, Any]) -> None:
@@ -172,8 +181,11 @@ class NetsimFederate(Federate):
         places: dict[tuple[str, int], dict[int, int]] = {}  # per bundle: id(app) -> its item's index
         outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
-        if self.outside_in_cell:
-            self.outside_in_cell -= sum(o.packet.ref[0] not in self.cohosted for o in outcomes)
+        if self.outside_in_cell.total():
+            for o in outcomes:
+                p = o.packet
+                if p.ref[0] not in self.cohosted:
+                    self.outside_in_cell[p.ue, p.direction] -= 1
         for outcome in outcomes:
             if outcome.deliver_us is None:
                 continue

@@ -370,6 +370,50 @@ class NrCell(Cell):
             or self._ul_known or self._sr_candidates or self._dl_active
             or any(b.bytes for b in self._ul_buf))
 
+    def earliest_delivery_us(self, ue: str, direction: str) -> int | None:
+        """A packet arrives at the end of the slot whose PDSCH or PUSCH carries its last bytes.
+        DL: a PDSCH is assigned in its own slot (K0 = 0), so the next slot may deliver. UL: a
+        PUSCH needs a grant made K2 slots before (a configured grant needs none). Of the UE's
+        grants already in the pipeline, a retransmission may complete a packet; a new one only
+        once the grants up to it have room for the rest of a flow's first packet. Without such
+        a grant, the earliest is the slot that the next PDCCH grants for."""
+        u = self._index.get(ue)
+        if u is None:
+            return None
+        slot = self.slot_us
+        n0 = 0 if self._next_slot_us is None else self._next_slot_us // slot
+        if direction != "ul" or self._configured_grant:
+            return n0 * slot
+        buf = self._ul_buf[u]
+        rest = self._first_packet_rest(buf)
+        if any(su == u and sul for _, _, _, su, sul in self._staged) or any(
+                self._qos.get(name, DEFAULT_QOS).delay_budget_us is not None for name in buf.by_name):
+            rest = 0  # a packet entering or a discard may put a whole packet first
+        room = 0
+        h = buf.header_bytes
+        for k in sorted(k for k in self._ul_pipeline if k >= n0):
+            for g in self._ul_pipeline[k]:
+                if g.ue != u:
+                    continue
+                if g.tb is not None:
+                    return k * slot
+                room += g.payload_bytes - h
+                if rest is not None and rest <= room:
+                    return k * slot
+        return (n0 + self._k2) * slot
+
+    @staticmethod
+    def _first_packet_rest(buf: SenderBuffer) -> int | None:
+        """Fewest bytes still to send of a flow's first packet in ``buf`` (None: nothing to send)."""
+        rest = None
+        for fq in buf.flows:
+            if fq.bytes:
+                for e in fq.entries:
+                    if e.to_send:  # entries with nothing to send leave their queue lazily
+                        rest = e.to_send if rest is None else min(rest, e.to_send)
+                        break
+        return rest
+
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
         """Set a flow's priority and delay budget; the budget also applies to its packets
         already queued (their discard deadline is recomputed from their enqueue time). With

@@ -11,6 +11,7 @@ import pytest
 from test_conductor import Pinger, W
 
 from coordinator.conductor import Conductor, RunFailed
+from fabric import keys
 from fabric.bus import InMemoryBus, InMemoryHub
 from fabric.federate import NEVER_US, Federate, FederateContext
 from fabric.group import FederateGroup
@@ -25,6 +26,14 @@ class Promising(Pinger):
 
     def external_horizon_us(self) -> int | None:
         return NEVER_US
+
+
+class Announcing(Pinger):
+    """A pinger that promises its next tick, when it sends next, as its horizon."""
+
+    def external_horizon_us(self) -> int | None:
+        ticked = sum(1 for entry in self.log if entry[3] == "tick")
+        return self.ticks[ticked] if ticked < len(self.ticks) else NEVER_US
 
 
 class Breaker(Pinger):
@@ -45,10 +54,16 @@ class Ahead(Pinger):
 
 def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
         peers: dict[str, list[str]] | None = None, kind: type[Pinger] = Pinger,
+        windows: list[tuple[int, int]] | None = None,
         ) -> tuple[Conductor, dict[str, Pinger], dict[str, str]]:
     """Run the pingers of TICKS, those in ``grouped`` as the group ``g``; their logs and the
-    stopped reports' trace hashes."""
+    stopped reports' trace hashes. ``windows`` collects the windows conducted (start, end)."""
     hub = InMemoryHub()
+    if windows is not None:
+        def on_advance(key: str, payload: bytes) -> None:
+            adv = Advance.decode(payload)
+            windows.append((adv.t_start_us, adv.t_end_us))
+        InMemoryBus(hub).subscribe(keys.advance("t1"), on_advance)
     sc = parse_scenario({"duration_s": 0.05})
     names = sorted(TICKS)
     feds = {n: kind(FederateContext(n, "t1", sc, tmp_path / n), InMemoryBus(hub),
@@ -105,6 +120,20 @@ def test_a_member_sending_out_of_a_long_window_fails_the_run(tmp_path: Path) -> 
     with pytest.raises(RunFailed, match="c: ping to d delivered at .* inside the window") as err:
         run(tmp_path, ["a", "b", "c"], peers=peers, kind=Promising)
     assert err.value.federate == "c"
+
+
+def test_a_long_window_takes_in_the_base_window_of_the_horizon(tmp_path: Path) -> None:
+    # c sends to d at its ticks (2000, 9000), delivered a base window later: the window in which
+    # it sends may end there, not at the tick. Everything is processed as without long windows.
+    peers = {"a": ["b"], "b": ["a"], "c": ["d"], "d": []}
+    _, alone, _ = run(tmp_path / "alone", [], peers=peers)
+    windows: list[tuple[int, int]] = []
+    _, grouped, _ = run(tmp_path / "grouped", ["a", "b", "c"], peers=peers, kind=Announcing, windows=windows)
+    for n in TICKS:
+        assert grouped[n].log == alone[n].log, n
+    # After 8000 the group's horizon is c's send at 9000: the window runs to 10 000, where that
+    # send arrives (up to 9000 only before).
+    assert (8000, 10_000) in windows
 
 
 def test_a_failing_member_is_named(tmp_path: Path) -> None:
