@@ -397,9 +397,11 @@ class NrCell(Cell):
                     continue
                 if g.tb is not None:
                     return k * slot
-                room += g.payload_bytes - h
+                room += max(0, g.payload_bytes - h)  # a grant below one header carries nothing
                 if rest is not None and rest <= room:
                     return k * slot
+                if self._harq_ul.max_tx == 1:
+                    rest = 0  # a failed TB loses its packets at once: a whole one may come first
         return (n0 + self._k2) * slot
 
     @staticmethod
