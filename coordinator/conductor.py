@@ -149,8 +149,7 @@ class Conductor:
                       or ((nxt := next_event[f]) is not None and nxt < t_end)]
             alone = active[0] if len(active) == 1 else None
             if (alone is not None and expected[alone] == seen_in.get(alone)
-                    and (horizon := horizons.get(alone)) is not None
-                    and (horizon // self.window_us + 1) * self.window_us > t_end):
+                    and (horizon := horizons.get(alone)) is not None and horizon >= t_end):
                 # The others have nothing to do and nothing coming before their next events; it
                 # has been sent nothing new (its horizon holds only until something arrives) and
                 # sends them nothing before its horizon: a long window, up to the earliest. What

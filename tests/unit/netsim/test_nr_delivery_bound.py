@@ -14,16 +14,46 @@ GNB = (60.0, 30.0, 1.5)
 UES = {f"ue{i}": (10.0 + 12.0 * i, 8.0 + 5.0 * i, 1.5) for i in range(8)}
 
 
+class BoundWatch:
+    """Drives a cell and checks every delivery against the bounds given while it held the packet."""
+
+    def __init__(self, cell: NrCell) -> None:
+        self.cell = cell
+        self.bound: dict[int, int] = {}  # packet id -> the latest bound given while the cell held it
+        self.held: dict[tuple[str, str], set[int]] = {}
+        self.checked = self.late = self.beyond_next_slot = 0
+
+    def enqueue(self, packets: list[Packet]) -> None:
+        refused = {o.packet.packet_id for o in self.cell.enqueue_many(packets)}
+        for p in packets:
+            if p.packet_id not in refused:
+                self.held.setdefault((p.ue, p.direction), set()).add(p.packet_id)
+
+    def slot(self, t: int) -> None:
+        """Ask the bound of every (UE, direction) holding packets, then run the slot at ``t``."""
+        for (ue, direction), ids in self.held.items():
+            if ids:
+                b = self.cell.earliest_delivery_us(ue, direction)
+                assert b is not None
+                self.beyond_next_slot += b > t
+                for pid in ids:
+                    self.bound[pid] = max(self.bound.get(pid, b), b)
+        for o in self.cell.run_slot(t):
+            p = o.packet
+            self.held[p.ue, p.direction].discard(p.packet_id)
+            if o.deliver_us is not None:
+                self.checked += 1
+                self.late += o.deliver_us - self.cell.slot_us < self.bound[p.packet_id]
+
+
 @pytest.mark.parametrize("access", ["grant_based", "configured_grant"])
 def test_no_packet_arrives_before_the_bound_given_while_it_was_held(access: str) -> None:
     cell = NrCell(NrConfig(ul_access=access, pdcch_miss_prob=0.02), GNB, UES, seed=3)
     slot = cell.slot_us
     cell.set_flow_qos("ue1-ul", FlowQos(delay_budget_us=12 * slot))
     rng = np.random.default_rng(7)
-    bound: dict[int, int] = {}  # packet id -> the latest bound given while the cell held it
-    held: dict[tuple[str, str], set[int]] = {}
+    watch = BoundWatch(cell)
     next_id = 0
-    later_than_next_slot = checked = 0
     for s in range(1500):
         t = s * slot
         # Saturating uplink (frames of 1500-byte packets, some entering a few slots later) and
@@ -38,25 +68,12 @@ def test_no_packet_arrives_before_the_bound_given_while_it_was_held(access: str)
                 for size in sizes:
                     next_id += 1
                     packets.append(Packet(next_id, f"{ue}-{direction}", ue, direction, size, enter))
-                refused = {o.packet.packet_id for o in cell.enqueue_many(packets)}
-                held.setdefault((ue, direction), set()).update(
-                    p.packet_id for p in packets if p.packet_id not in refused)
-        for (ue, direction), ids in held.items():
-            if ids:
-                b = cell.earliest_delivery_us(ue, direction)
-                assert b is not None
-                later_than_next_slot += b > t
-                for pid in ids:
-                    bound[pid] = max(bound.get(pid, b), b)
-        for o in cell.run_slot(t):
-            p = o.packet
-            held[p.ue, p.direction].discard(p.packet_id)
-            if o.deliver_us is not None:
-                checked += 1
-                assert o.deliver_us - slot >= bound[p.packet_id], (p, bound[p.packet_id])
-    assert checked > 5000
+                watch.enqueue(packets)
+        watch.slot(t)
+    assert watch.late == 0
+    assert watch.checked > 5000
     if access == "grant_based":
-        assert later_than_next_slot > 1000  # the bound often says more than "the next slot"
+        assert watch.beyond_next_slot > 1000  # the bound often says more than "the next slot"
 
 
 def test_a_packet_lost_ahead_of_a_small_one_does_not_delay_the_bound() -> None:
@@ -66,21 +83,12 @@ def test_a_packet_lost_ahead_of_a_small_one_does_not_delay_the_bound() -> None:
     for seed in range(40):
         cell = NrCell(NrConfig(k2_slots=2, harq_max_transmissions=1, bler_target=0.5), GNB,
                       {"ue0": UES["ue0"]}, seed=seed)
-        slot = cell.slot_us
-        held: set[int] = set()
-        bound: dict[int, int] = {}
+        watch = BoundWatch(cell)
         for s in range(60):
-            t = s * slot
+            t = s * cell.slot_us
             if s % 20 == 0:
-                cell.enqueue_many([Packet(2 * s, "f", "ue0", "ul", 300_000, t),
-                                   Packet(2 * s + 1, "f", "ue0", "ul", 100, t)])
-                held |= {2 * s, 2 * s + 1}
-            if held:
-                b = cell.earliest_delivery_us("ue0", "ul")
-                assert b is not None
-                for pid in held:
-                    bound[pid] = max(bound.get(pid, b), b)
-            for o in cell.run_slot(t):
-                held.discard(o.packet.packet_id)
-                late += o.deliver_us is not None and o.deliver_us - slot < bound[o.packet.packet_id]
+                watch.enqueue([Packet(2 * s, "f", "ue0", "ul", 300_000, t),
+                               Packet(2 * s + 1, "f", "ue0", "ul", 100, t)])
+            watch.slot(t)
+        late += watch.late
     assert late == 0
