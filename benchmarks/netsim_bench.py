@@ -27,6 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # runnable from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
+from fabric.heap import freeze_setup  # noqa: E402
+from fabric.native import compiled_loaded  # noqa: E402
 from netsim.standalone import run_uplink_cameras  # noqa: E402
 
 CASES = [(36, 8.5), (16, 8.5)]
@@ -53,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "bench" / "netsim.md")
     args = parser.parse_args(argv)
 
+    freeze_setup()  # as the `cosim5g netsim` command and every federate process do
     rows = []
     for n_ues, rate in CASES:
         best = None
@@ -71,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Host: {platform.machine()}, {os.cpu_count()} cores, Python "
         f"{platform.python_version()}, load average {load:.1f} at the end of the runs. "
-        f"{args.duration_s:g} s simulated per run, best of {args.repeat}.",
+        f"{args.duration_s:g} s simulated per run, best of {args.repeat}. NR cell: "
+        f"{'compiled (make native)' if compiled_loaded() else 'pure Python'}.",
         "",
         "| UEs | offered Mbps | delivered Mbps | slots/s (loop) | cell slots/s | run_slot/s "
         "| CPU slots/s | p50 / p99 latency ms |",

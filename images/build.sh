@@ -206,6 +206,25 @@ else
 fi
 log "wheelhouse: $(ls "$WH/project")"
 
+# The NR cell compiled on the host (make native, see fabric/native.py), for the image's
+# /opt/cosim5g-native. The image uses it only while its stamp matches the sources it ships and it
+# loads (same CPython minor, glibc no newer than bookworm's); otherwise netsim runs as pure Python.
+native="$REPO/build/native/cpython-311"
+rm -rf "$WH/native.new"
+mkdir -p "$WH/native.new"
+if [[ -f "$native/stamp.json" ]]; then
+  cp -r "$native/." "$WH/native.new/"
+  log "wheelhouse: compiled modules from ${native#"$REPO"/}"
+else
+  log "wheelhouse: no compiled modules in ${native#"$REPO"/} (make native): netsim runs as pure Python in the image"
+fi
+if [[ -d "$WH/native" ]] && diff -rq "$WH/native" "$WH/native.new" >/dev/null; then
+  rm -rf "$WH/native.new"
+else
+  rm -rf "$WH/native"
+  mv "$WH/native.new" "$WH/native"
+fi
+
 # --------------------------------------------------------------------------------------------
 # 3. Images (the wheelhouse is the build context: nothing else is sent to the daemon)
 # --------------------------------------------------------------------------------------------

@@ -60,9 +60,14 @@ ENV PATH=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/
 WORKDIR /tmp
 ENTRYPOINT ["/usr/bin/tini", "--"]
 CMD ["python", "-m", "services.main", "--help"]
-# The project itself last: a source change rebuilds only these two small steps.
+# The NR cell compiled on the host, where it was built (make native): fabric.native uses it only
+# while it matches the installed sources and loads here; the build log says which it is.
+COPY native/ /opt/cosim5g-native/
+ENV COSIM5G_NATIVE_DIR=/opt/cosim5g-native
+# The project itself last: a source change rebuilds only these small steps.
 COPY project/ /wheelhouse/project/
 RUN pip install --no-cache-dir --no-index --no-deps /wheelhouse/project/*.whl \
  && rm -rf /wheelhouse \
- && python -c "import interfaces.api, services, netsim, experiments"
+ && python -c "import interfaces.api, services, netsim, experiments" \
+ && python -m fabric.native status
 USER cosim:cosim

@@ -9,11 +9,12 @@ the ``packets`` table as packets are decided: nothing per packet is kept past it
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from operator import attrgetter
 from typing import Any
 
-from fabric import metrics
+from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
 from fabric.tables import PACKETS
@@ -32,6 +33,8 @@ from netsim.simple import SimpleCell
 _PACKET, _DELIVER, _CAUSE = attrgetter("packet"), attrgetter("deliver_us"), attrgetter("cause")
 _PACKET_ID, _FLOW, _UE = attrgetter("packet_id"), attrgetter("flow"), attrgetter("ue")
 _DIRECTION, _SIZE, _ENQUEUE = attrgetter("direction"), attrgetter("size_bytes"), attrgetter("enqueue_us")
+
+log = logging.getLogger(__name__)
 
 # Bounds of a UE's urgency weight in the PF ranking (budgets 8x shorter or longer than the usual).
 MAX_URGENCY = 8.0
@@ -66,6 +69,9 @@ class NetsimFederate(Federate):
 
     def setup(self) -> None:
         self.cell = make_cell(self)
+        compiled = native.compiled_loaded()
+        log.info("cell model %s: %s", type(self.cell).__name__,
+                 f"compiled ({', '.join(compiled)})" if compiled else "pure Python")
         self.slot_us = self.scenario.netsim.slot_us
         self.next_packet_id = 0
         self.slot_scheduled: int | None = None

@@ -27,6 +27,7 @@ from pathlib import Path
 from types import FrameType
 
 from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
+from fabric.heap import freeze_setup
 from scenario.schema import ScenarioError, load_scenario
 
 PARENT_PID_ENV = "COSIM5G_PARENT_PID"
@@ -186,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         fed = federate_class(args.role)(ctx, bus)
     lifeline.attach(fed)
+    freeze_setup()
     try:
         code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))
     except Exception:

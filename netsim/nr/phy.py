@@ -14,13 +14,15 @@ import json
 import math
 from dataclasses import dataclass
 from functools import cache
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from scenario.nr import McsTableName
 
-TABLES_DIR = Path(__file__).with_name("tables")
+# Beside the package's sources (a compiled build of this module lives elsewhere: fabric.native).
+TABLES_DIR = Path(str(resources.files("netsim.nr") / "tables"))
 
 # TS 38.212 Table 5.3.2-1: LDPC lifting sizes Z = a * 2^j <= 384, a in {2,3,5,7,9,11,13,15}.
 LIFTING_SIZES = sorted(

@@ -1,0 +1,28 @@
+"""The cyclic garbage collector in a simulation process: set-up frozen out of it, collections rarer.
+
+A federate or benchmark process imports numpy, pydantic, zenoh and MuJoCo and builds its models
+and tables before it simulates: a hundred thousand objects or more that live as long as the
+process, and that every full collection walked again. ``freeze_setup`` moves them to the
+permanent generation, which collections skip. A simulated slot then allocates hundreds of small
+objects (packets, queue entries, outcomes, messages), and thousands of packets wait in sender
+buffers long enough to reach the oldest generation: with the default thresholds (700, 10, 10)
+the collector ran every few slots and walked the queued packets again and again. Collections
+every 50 000 allocations (gen 1 every 20 of them, gen 2 every 100 of those) still find every
+cycle. Measured (docs/netsim.md, Speed): the NR cell alone under 36 saturated cameras ran 1.1
+times as fast as with the freeze alone; the collector's time in the core process of a 32-loop
+run went from about 4 % of its wall time to almost nothing.
+"""
+
+from __future__ import annotations
+
+import gc
+
+THRESHOLDS = (50_000, 20, 100)
+
+
+def freeze_setup() -> None:
+    """Collect set-up's garbage, freeze what is still alive and make collections rarer (call
+    once, when set-up is done)."""
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*THRESHOLDS)
