@@ -1,7 +1,7 @@
 """Compiled builds of the hot pure-Python modules (mypyc): built by ``make native``, used when fresh.
 
 The Python sources stay the only truth. mypyc compiles the same typed files to C extension
-modules, which run the NR cell about 1.4 times as fast and compute the same numbers (the same
+modules, which run the NR cell about twice as fast and compute the same numbers (the same
 operations on the same C doubles and Python ints). A build lives outside the source tree, in
 ``build/native/<cache tag>/`` (``COSIM5G_NATIVE_DIR`` elsewhere, e.g. in the runtime image), with
 a stamp of the sources it was built from. A package that calls ``use_native`` at import puts the
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             print(build(native_dir()))
         except Exception as exc:  # a missing compiler or header: pure Python still runs
             print(f"compiled modules not built ({type(exc).__name__}: {exc}); {', '.join(MODULES)} "
-                  "run as pure Python, about 1.4 times slower. The build needs mypy (in .venv), "
+                  "run as pure Python, at about half the speed. The build needs mypy (in .venv), "
                   "gcc and the Python headers (Debian: apt-get install gcc python3-dev)",
                   file=sys.stderr)
             return 1

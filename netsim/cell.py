@@ -20,7 +20,9 @@ LOSS_DELAY_BUDGET = "delay_budget"  # older than its flow's packet delay budget 
 LOSS_BUFFER = "buffer_overflow"  # sender buffer full on arrival
 
 
-@dataclass(slots=True)
+# Packets and outcomes are made by the ten thousand a simulated second: plain classes with an
+# __init__ of their own, which the compiled build (fabric.native) compiles; a dataclass's
+# generated __init__ would run as interpreted code even there.
 class Packet:
     """One IP packet handed to a sender's modem.
 
@@ -28,22 +30,35 @@ class Packet:
     belongs to (the sender in uplink, the receiver in downlink); ``flow`` names its QoS flow.
     """
 
-    packet_id: int
-    flow: str
-    ue: str
-    direction: Direction
-    size_bytes: int
-    enqueue_us: int
-    ref: Any = None  # opaque to the cell: the netsim federate's routing data
+    __slots__ = ("packet_id", "flow", "ue", "direction", "size_bytes", "enqueue_us", "ref")
+
+    def __init__(self, packet_id: int, flow: str, ue: str, direction: Direction, size_bytes: int,
+                 enqueue_us: int, ref: Any = None) -> None:
+        self.packet_id = packet_id
+        self.flow = flow
+        self.ue = ue
+        self.direction = direction
+        self.size_bytes = size_bytes
+        self.enqueue_us = enqueue_us
+        self.ref = ref  # opaque to the cell: the netsim federate's routing data
+
+    def __repr__(self) -> str:
+        return (f"Packet({self.packet_id}, {self.flow!r}, {self.ue!r}, {self.direction!r}, "
+                f"{self.size_bytes}, {self.enqueue_us}, ref={self.ref!r})")
 
 
-@dataclass(slots=True)
 class PacketOutcome:
     """The fate of a packet: delivered at ``deliver_us`` (a slot end) or lost with ``cause``."""
 
-    packet: Packet
-    deliver_us: int | None
-    cause: str | None = None
+    __slots__ = ("packet", "deliver_us", "cause")
+
+    def __init__(self, packet: Packet, deliver_us: int | None, cause: str | None = None) -> None:
+        self.packet = packet
+        self.deliver_us = deliver_us
+        self.cause = cause
+
+    def __repr__(self) -> str:
+        return f"PacketOutcome({self.packet!r}, {self.deliver_us}, {self.cause!r})"
 
     @property
     def delivered(self) -> bool:

@@ -27,8 +27,7 @@ import heapq
 import math
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from itertools import groupby, repeat
-from operator import attrgetter
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -52,9 +51,6 @@ from netsim.nr.scheduler import make_scheduler
 from scenario.nr import NrConfig
 
 DEFAULT_QOS = FlowQos()
-_RUN_KEY = attrgetter("ue", "flow", "direction")
-_SIZE = attrgetter("size_bytes")
-_ENQUEUE_US = attrgetter("enqueue_us")
 POWER_LIMIT_MARGIN_DB = 3.0  # SNR per PRB kept above the MCS-0 threshold by this much
 
 
@@ -238,10 +234,22 @@ class NrCell(Cell):
         any other run goes packet by packet through ``_enqueue_each``.
         """
         refused: list[PacketOutcome] = []
-        for (ue, flow, direction), run in groupby(packets, _RUN_KEY):
-            run_list = list(run)
-            if not (direction == "ul" and self._append_run(run_list, ue, flow)):
-                self._enqueue_each(run_list, refused)
+        batch = packets if isinstance(packets, list) else list(packets)
+        n = len(batch)
+        i = 0
+        while i < n:  # runs found by plain comparisons: compiled, they cost a few instructions
+            first = batch[i]
+            ue, flow, direction = first.ue, first.flow, first.direction
+            j = i + 1
+            while j < n:
+                p = batch[j]
+                if p.ue != ue or p.flow != flow or p.direction != direction:
+                    break
+                j += 1
+            run = batch if j - i == n else batch[i:j]
+            if not (direction == "ul" and self._append_run(run, ue, flow)):
+                self._enqueue_each(run, refused)
+            i = j
         return refused
 
     def _append_run(self, run: list[Packet], ue: str, flow: str) -> bool:
@@ -256,13 +264,19 @@ class NrCell(Cell):
         fq = buf.by_name.get(flow)
         if not queued or fq is None or fq.priority != qos.priority:
             return False
-        sizes = list(map(_SIZE, run))
-        total = sum(sizes)
+        # Plain loops: compiled (fabric.native), they read the packets' fields directly.
         nxt = self._next_slot_us
-        if (min(sizes) <= 0 or queued + total > buf.limit_bytes
-                or (nxt is not None and max(map(_ENQUEUE_US, run)) > nxt)):
+        total = 0
+        for p in run:
+            size = p.size_bytes
+            if size <= 0 or (nxt is not None and p.enqueue_us > nxt):
+                return False
+            total += size
+        if queued + total > buf.limit_bytes:
             return False
-        fq.entries.extend(map(PacketEntry, run, repeat(None)))
+        entries = fq.entries
+        for p in run:
+            entries.append(PacketEntry(p, None))
         fq.bytes += total
         buf.bytes = queued = queued + total
         buf.packets += len(run)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import heapq
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from typing import Literal
 
 SchedulerKind = Literal["pf", "rr", "max_rate"]
@@ -24,15 +24,15 @@ class Scheduler(ABC):
         self.n_ue = n_ue
 
     @abstractmethod
-    def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+    def order(self, candidates: list[int], priority: list[int],
+              rate: list[float], slot: int, urgency: list[float] | None = None) -> list[int]:
         """``candidates`` in service order. ``priority[u]`` is UE u's QoS priority (lower
         first), ``rate[u]`` its achievable rate estimate (bits per PRB), ``urgency[u]`` the
         weight of its dynamic delay budget (None: all 1)."""
 
-    def ranked(self, candidates: Sequence[int], priority: Sequence[int],
-               rate: Sequence[float], slot: int,
-               urgency: Sequence[float] | None = None) -> Iterator[int]:
+    def ranked(self, candidates: list[int], priority: list[int],
+               rate: list[float], slot: int,
+               urgency: list[float] | None = None) -> Iterator[int]:
         """``order`` as an iterator (the ranking is fixed when this is called): the cell
         usually takes only the first UE or two, so a policy may rank lazily."""
         return iter(self.order(candidates, priority, rate, slot, urgency))
@@ -61,8 +61,8 @@ class ProportionalFair(Scheduler):
         """T_u(slot - 1), the average served bits per slot before ``slot``."""
         return self.avg_bits[ue] * self.beta ** max(0, slot - 1 - self.avg_slot[ue])
 
-    def _metrics(self, candidates: Sequence[int], rate: Sequence[float], slot: int,
-                 urgency: Sequence[float] | None) -> list[float]:
+    def _metrics(self, candidates: list[int], rate: list[float], slot: int,
+                 urgency: list[float] | None) -> list[float]:
         """-w r / T per candidate (lower is served first within a priority class)."""
         # Inlined loop rather than a sort key function: this runs every slot for every
         # backlogged UE and is the scheduler's whole cost.
@@ -85,23 +85,23 @@ class ProportionalFair(Scheduler):
                 append(-1e300 * w)
         return metrics
 
-    def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+    def order(self, candidates: list[int], priority: list[int],
+              rate: list[float], slot: int, urgency: list[float] | None = None) -> list[int]:
         metrics = self._metrics(candidates, rate, slot, urgency)
         keyed = sorted(zip([priority[u] for u in candidates], metrics, candidates, strict=True))
         return [k[2] for k in keyed]
 
-    def ranked(self, candidates: Sequence[int], priority: Sequence[int],
-               rate: Sequence[float], slot: int,
-               urgency: Sequence[float] | None = None) -> Iterator[int]:
+    def ranked(self, candidates: list[int], priority: list[int],
+               rate: list[float], slot: int,
+               urgency: list[float] | None = None) -> Iterator[int]:
         """``order``, taken lazily: the cell rarely serves more than a UE or two a slot.
 
         The order is that of the keys (priority, metric, UE), all distinct. With one priority
         class (the usual case) the next UE is the smallest metric, the lowest UE among equal
-        ones: found by C-level min and index on floats rather than by comparing tuples."""
+        ones: found by one pass over the metrics rather than by comparing tuples."""
         metrics = self._metrics(candidates, rate, slot, urgency)
         prios = [priority[u] for u in candidates]
-        if prios and min(prios) == max(prios):
+        if prios and prios.count(prios[0]) == len(prios):
             return self._pop_best(list(candidates), metrics)
         keyed = list(zip(prios, metrics, candidates, strict=True))
         heapq.heapify(keyed)
@@ -115,11 +115,16 @@ class ProportionalFair(Scheduler):
 
     @staticmethod
     def _pop_best(ues: list[int], metrics: list[float]) -> Iterator[int]:
+        # One plain pass per pick: compiled (fabric.native), it compares C doubles.
         while metrics:
-            best = min(metrics)
-            i = metrics.index(best)
-            if metrics.count(best) > 1:  # a tie (equal metrics): the lowest UE index first
-                i = min((j for j, m in enumerate(metrics) if m == best), key=ues.__getitem__)
+            i = 0
+            best = metrics[0]
+            for j in range(1, len(metrics)):
+                m = metrics[j]
+                # A tie (equal metrics): the lowest UE index first.
+                if m < best or (m == best and ues[j] < ues[i]):
+                    best = m
+                    i = j
             yield ues[i]
             del metrics[i], ues[i]
 
@@ -135,8 +140,8 @@ class RoundRobin(Scheduler):
         super().__init__(n_ue)
         self.last_served = [-1] * n_ue
 
-    def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+    def order(self, candidates: list[int], priority: list[int],
+              rate: list[float], slot: int, urgency: list[float] | None = None) -> list[int]:
         last = self.last_served
         return sorted(candidates, key=lambda u: (priority[u], last[u], u))
 
@@ -147,8 +152,8 @@ class RoundRobin(Scheduler):
 class MaxRate(Scheduler):
     """The UE with the best channel goes first (maximises cell throughput, starves the edge)."""
 
-    def order(self, candidates: Sequence[int], priority: Sequence[int],
-              rate: Sequence[float], slot: int, urgency: Sequence[float] | None = None) -> list[int]:
+    def order(self, candidates: list[int], priority: list[int],
+              rate: list[float], slot: int, urgency: list[float] | None = None) -> list[int]:
         return sorted(candidates, key=lambda u: (priority[u], -rate[u], u))
 
 
