@@ -137,4 +137,4 @@ measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for
 	$(BIN)/python -m training.frame_model
 
 clean: ## remove results and caches (keeps .venv)
-	rm -rf results .pytest_cache .ruff_cache .mypy_cache
+	rm -rf results .pytest_cache .ruff_cache .mypy_cache build/native

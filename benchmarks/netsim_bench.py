@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # runnable from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
-from fabric.heap import freeze_setup  # noqa: E402
+from fabric.heap import simulation_heap  # noqa: E402
 from fabric.native import compiled_loaded  # noqa: E402
 from netsim.standalone import run_uplink_cameras  # noqa: E402
 
@@ -55,13 +55,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "bench" / "netsim.md")
     args = parser.parse_args(argv)
 
-    freeze_setup()  # as the `cosim5g netsim` command and every federate process do
     rows = []
     for n_ues, rate in CASES:
         best = None
         for _ in range(args.repeat):
             cpu0 = time.process_time()
-            r = run_uplink_cameras(n_ues, rate, args.duration_s, seed=0)
+            with simulation_heap():  # as in the `cosim5g netsim` command and every federate
+                r = run_uplink_cameras(n_ues, rate, args.duration_s, seed=0)
             r["cpu_slots_per_second"] = r["slots"] / (time.process_time() - cpu0)
             if best is None or r["slots_per_second"] > best["slots_per_second"]:
                 best = r

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run import execute_run, federate_specs
-from fabric.heap import freeze_setup
+from fabric.heap import simulation_heap
 from fabric.native import compiled_loaded
 from netsim.standalone import run_uplink_cameras
 from scenario.schema import load_scenario
@@ -94,10 +94,10 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
 
 
 def netsim_case(duration_s: float) -> dict[str, Any]:
-    freeze_setup()  # as the `cosim5g netsim` command and every federate process do
     best: dict[str, Any] | None = None
     for _ in range(2):
-        r = run_uplink_cameras(36, 8.5, duration_s, seed=0)
+        with simulation_heap():  # as in the `cosim5g netsim` command and every federate
+            r = run_uplink_cameras(36, 8.5, duration_s, seed=0)
         if best is None or r["slots_per_second"] > best["slots_per_second"]:
             best = r
     assert best is not None

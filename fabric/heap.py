@@ -2,7 +2,7 @@
 
 A federate or benchmark process imports numpy, pydantic, zenoh and MuJoCo and builds its models
 and tables before it simulates: a hundred thousand objects or more that live as long as the
-process, and that every full collection walked again. ``freeze_setup`` moves them to the
+process, and that every full collection walked again. ``simulation_heap`` moves them to the
 permanent generation, which collections skip. A simulated slot then allocates hundreds of small
 objects (packets, queue entries, outcomes, messages), and thousands of packets wait in sender
 buffers long enough to reach the oldest generation: with the default thresholds (700, 10, 10)
@@ -16,13 +16,23 @@ run went from about 4 % of its wall time to almost nothing.
 from __future__ import annotations
 
 import gc
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 THRESHOLDS = (50_000, 20, 100)
 
 
-def freeze_setup() -> None:
-    """Collect set-up's garbage, freeze what is still alive and make collections rarer (call
-    once, when set-up is done)."""
+@contextmanager
+def simulation_heap() -> Iterator[None]:
+    """Inside: set-up's garbage collected, what is alive frozen, collections rarer. On leaving,
+    the thresholds are restored and the frozen objects collectable again (a test calling a
+    command's ``main`` in-process gets its collector back as it was)."""
+    thresholds = gc.get_threshold()
     gc.collect()
     gc.freeze()
     gc.set_threshold(*THRESHOLDS)
+    try:
+        yield
+    finally:
+        gc.set_threshold(*thresholds)
+        gc.unfreeze()

@@ -15,12 +15,14 @@ as pure Python (said once in the log) until the next ``make native``, never as a
 from __future__ import annotations
 
 import argparse
+import fcntl
 import hashlib
 import importlib
 import json
 import logging
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 from functools import lru_cache
@@ -36,7 +38,6 @@ ROOT = Path(__file__).resolve().parents[1]
 MODULES = (
     "netsim/cell.py",
     "netsim/simple.py",
-    "netsim/standalone.py",
     "netsim/nr/buffers.py",
     "netsim/nr/cell.py",
     "netsim/nr/channel.py",
@@ -45,6 +46,9 @@ MODULES = (
     "netsim/nr/phy.py",
     "netsim/nr/scheduler.py",
 )
+# Modules the compiled ones import: mypyc builds in the types it reads there, so an edit to them
+# makes a build stale too.
+DEPENDS = ("scenario/nr.py", "fabric/seeding.py")
 GROUP = "cosim5g_native"  # mypyc's shared library of the group: cosim5g_native__mypyc
 PURE_ENV = "COSIM5G_PURE_PYTHON"
 DIR_ENV = "COSIM5G_NATIVE_DIR"
@@ -58,9 +62,10 @@ def native_dir() -> Path:
 
 @lru_cache(maxsize=1)
 def sources_digest() -> str:
-    """sha256 over the compiled modules' names and contents, and the interpreter's cache tag."""
+    """sha256 over the names and contents of the compiled modules and those they import, and the
+    interpreter's cache tag."""
     h = hashlib.sha256(sys.implementation.cache_tag.encode())
-    for rel in MODULES:
+    for rel in MODULES + DEPENDS:
         h.update(b"\0" + rel.encode() + b"\0")
         h.update((ROOT / rel).read_bytes())
     return h.hexdigest()
@@ -109,12 +114,26 @@ def compiled_loaded() -> list[str]:
             and not (getattr(sys.modules[n], "__file__", None) or ".py").endswith(".py")]
 
 
+def _loads(d: Path) -> bool:
+    """True if the build in ``d`` loads in a fresh interpreter like this one."""
+    probe = subprocess.run([sys.executable, "-c", f"import {GROUP}__mypyc"], env=dict(
+        os.environ, PYTHONPATH=str(d)), capture_output=True, timeout=60)
+    return probe.returncode == 0
+
+
 def build(out: Path) -> str:
     """Compile MODULES into ``out`` (replaced whole once the build succeeded); returns a line
-    saying what was done."""
+    saying what was done. One build at a time per directory (a lock beside it)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return _build_locked(out)
+
+
+def _build_locked(out: Path) -> str:
     digest = sources_digest()
     try:
-        if json.loads((out / "stamp.json").read_text()).get("digest") == digest:
+        if json.loads((out / "stamp.json").read_text()).get("digest") == digest and _loads(out):
             return f"compiled modules up to date in {out}"
     except (OSError, ValueError):
         pass
@@ -122,7 +141,6 @@ def build(out: Path) -> str:
     from mypyc.build import mypycify
     from setuptools import setup
 
-    out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="native-", dir=out.parent) as tmp:
         staging = Path(tmp) / "lib"
         cwd = os.getcwd()
@@ -136,6 +154,9 @@ def build(out: Path) -> str:
                 "--build-temp", str(Path(tmp) / "obj")])
         finally:
             os.chdir(cwd)
+        sources_digest.cache_clear()
+        if sources_digest() != digest:
+            raise RuntimeError("sources changed during the build; run it again")
         (staging / "stamp.json").write_text(json.dumps(
             {"digest": digest, "modules": list(MODULES)}, indent=1) + "\n")
         if out.exists():
@@ -151,7 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "build":
         try:
             print(build(native_dir()))
-        except Exception as exc:  # a missing compiler or header: pure Python still runs
+        # A missing compiler or header (setuptools and mypyc exit through SystemExit): pure
+        # Python still runs.
+        except (Exception, SystemExit) as exc:
             print(f"compiled modules not built ({type(exc).__name__}: {exc}); {', '.join(MODULES)} "
                   "run as pure Python, at about half the speed. The build needs mypy (in .venv), "
                   "gcc and the Python headers (Debian: apt-get install gcc python3-dev)",

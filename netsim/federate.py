@@ -119,7 +119,8 @@ class NetsimFederate(Federate):
         pdb = b.get("pdb_us")
         if self.flow_pdb.get(flow, "unset") != pdb:
             self.flow_pdb[flow] = pdb
-            self.cell.set_flow_qos(flow, FlowQos(priority=5 if b["dir"] == "dl" else 10, delay_budget_us=pdb))
+            self.cell.set_flow_qos(flow, FlowQos(priority=5 if b["dir"] == "dl" else 10,
+                                                 delay_budget_us=None if pdb is None else int(pdb)))
         ue, direction, t_us, dst, app = b["ue"], b["dir"], msg.t_us, b["dst"], b["app"]
         pid = self.next_packet_id
         # A packet's ref: (destination, application record, payload bytes, index in its
@@ -145,7 +146,7 @@ class NetsimFederate(Federate):
         """A loop's QoS signalled to the gNB (``policy.signalling: lower``): the flow's delay budget,
         and its UE weighed in the scheduler by the budget's urgency, the scenario's default budget
         over this one (a loop given half the usual budget counts twice in the PF ranking)."""
-        pdb = b["pdb_us"]
+        pdb = None if b["pdb_us"] is None else int(b["pdb_us"])  # FlowQos takes whole microseconds
         reference_us = self.scenario.policy.latency_budget_ms * 1000
         urgency = 1.0 if pdb is None else min(MAX_URGENCY, max(1.0 / MAX_URGENCY, reference_us / pdb))
         self.flow_pdb[b["flow"]] = pdb

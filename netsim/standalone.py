@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from fabric.heap import freeze_setup
+from fabric.heap import simulation_heap
 from fabric.seeding import rng as named_rng
 from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
 from netsim.nr.cell import NrCell
@@ -262,10 +262,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--warmup-s must be in [0, --duration-s), got {args.warmup_s}")
     config = _parse_overrides(parser, args.overrides)
     budget = None if args.delay_budget_ms is None else int(round(args.delay_budget_ms * 1000))
-    freeze_setup()
-    result = run_uplink_cameras(
-        args.ues, args.rate_mbps, args.duration_s, frame_rate=args.frame_rate, seed=args.seed,
-        config=config, warmup_s=args.warmup_s, delay_budget_us=budget)
+    with simulation_heap():
+        result = run_uplink_cameras(
+            args.ues, args.rate_mbps, args.duration_s, frame_rate=args.frame_rate, seed=args.seed,
+            config=config, warmup_s=args.warmup_s, delay_budget_us=budget)
     lat = result["ip_latency_ms"]
     print(f"{result['ues']} cameras x {result['rate_mbps']:g} Mbps, "
           f"{result['duration_s']:g} s simulated, seed {result['seed']}, "

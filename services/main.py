@@ -27,7 +27,7 @@ from pathlib import Path
 from types import FrameType
 
 from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
-from fabric.heap import freeze_setup
+from fabric.heap import simulation_heap
 from scenario.schema import ScenarioError, load_scenario
 
 PARENT_PID_ENV = "COSIM5G_PARENT_PID"
@@ -187,9 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         fed = federate_class(args.role)(ctx, bus)
     lifeline.attach(fed)
-    freeze_setup()
     try:
-        code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))
+        with simulation_heap():
+            code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))
     except Exception:
         logging.getLogger(args.name).exception("federate failed")
         code = 1
