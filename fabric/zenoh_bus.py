@@ -11,6 +11,7 @@ zenoh's default 10 s lets a federate notice a lost coordinator, and leave, withi
 from __future__ import annotations
 
 import json
+import time
 from typing import Any
 
 import zenoh
@@ -19,6 +20,7 @@ from fabric.bus import Bus, Callback, LivenessCallback
 
 LEASE_MS = 5000
 KEEP_ALIVES_PER_LEASE = 4
+CLOSE_DRAIN_S = 0.05  # see close()
 
 
 def session_config(mode: str, endpoint: str) -> zenoh.Config:
@@ -85,6 +87,9 @@ class ZenohBus(Bus):
         if self._closed:
             return
         self._closed = True
+        # zenoh batches puts for up to about a millisecond, and closing the session drops what
+        # is not yet written: a process's last messages (its final report) must leave first.
+        time.sleep(CLOSE_DRAIN_S)
         for pub in self._publishers.values():
             pub.undeclare()
         self._publishers.clear()
