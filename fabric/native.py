@@ -71,17 +71,29 @@ def sources_digest() -> str:
     return h.hexdigest()
 
 
+def _stamped_digest(d: Path) -> str | None:
+    """The source digest the build in ``d`` was stamped with (None: no build there)."""
+    try:
+        digest = json.loads((d / "stamp.json").read_text()).get("digest")
+    except (OSError, ValueError):
+        return None
+    return digest if isinstance(digest, str) else None
+
+
+def _module_name(rel: str) -> str:
+    return rel[:-3].replace("/", ".")
+
+
 @lru_cache(maxsize=1)
 def _fresh_build() -> Path | None:
     """The build directory if it exists and was made from the sources as they are now."""
     if os.environ.get(PURE_ENV, "") not in ("", "0"):
         return None
     d = native_dir()
-    try:
-        stamp = json.loads((d / "stamp.json").read_text())
-    except (OSError, ValueError):
+    stamped = _stamped_digest(d)
+    if stamped is None:
         return None  # never built here: pure Python, nothing to say
-    if stamp.get("digest") != sources_digest():
+    if stamped != sources_digest():
         log.warning("compiled modules in %s were built from other sources: running %s as pure "
                     "Python (make native rebuilds them)", d, ", ".join(MODULES))
         return None
@@ -109,7 +121,7 @@ def use_native(package: str, path: list[str]) -> None:
 
 def compiled_loaded() -> list[str]:
     """The modules of MODULES imported so far from the compiled build."""
-    names = [rel[:-3].replace("/", ".") for rel in MODULES]
+    names = [_module_name(rel) for rel in MODULES]
     return [n for n in names if n in sys.modules
             and not (getattr(sys.modules[n], "__file__", None) or ".py").endswith(".py")]
 
@@ -132,11 +144,8 @@ def build(out: Path) -> str:
 
 def _build_locked(out: Path) -> str:
     digest = sources_digest()
-    try:
-        if json.loads((out / "stamp.json").read_text()).get("digest") == digest and _loads(out):
-            return f"compiled modules up to date in {out}"
-    except (OSError, ValueError):
-        pass
+    if _stamped_digest(out) == digest and _loads(out):
+        return f"compiled modules up to date in {out}"
     # Imported here: mypyc and setuptools are build tools, absent from the runtime image.
     from mypyc.build import mypycify
     from setuptools import setup
@@ -182,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         return 0
     for rel in MODULES:  # each imported as the federates would
-        importlib.import_module(rel[:-3].replace("/", "."))
+        importlib.import_module(_module_name(rel))
     loaded = compiled_loaded()
     print(f"{len(loaded)} of {len(MODULES)} modules compiled ({native_dir()})")
     return 0
