@@ -243,19 +243,28 @@ class World:
     def advance_to(self, t_us: int) -> None:
         """Step until the next step would pass ``t_us``."""
         while self.t_us + self.dt_us <= t_us:
-            if self._on_belt is None or self._steps % self._check_steps == 0:
-                self._on_belt = self._parts_on_belts()
-            if self._on_belt.size:  # the conveyor drive: belt speed along x, nothing across
-                self.data.qvel[self._on_belt] = self.sc.cell.belt_speed_m_s
-                self.data.qvel[self._on_belt + 1] = 0.0
+            self.before_step()
             mujoco.mj_step(self.model, self.data)
-            self.t_us += self.dt_us
-            self._steps += 1
-            for c in self._vacuum:  # cups with the valve open and nothing held yet
-                if c.active:
-                    self._try_seal(c)
-            if self._steps % self._check_steps == 0:
-                self._check_tasks()
+            self.after_step()
+
+    def before_step(self) -> None:
+        """What a step begins with, before ``mj_step``: the conveyor drive. (A step may run its
+        ``mj_step`` elsewhere, e.g. in a thread: ``before_step``, ``mj_step``, ``after_step``.)"""
+        if self._on_belt is None or self._steps % self._check_steps == 0:
+            self._on_belt = self._parts_on_belts()
+        if self._on_belt.size:  # belt speed along x, nothing across
+            self.data.qvel[self._on_belt] = self.sc.cell.belt_speed_m_s
+            self.data.qvel[self._on_belt + 1] = 0.0
+
+    def after_step(self) -> None:
+        """What a step ends with, after ``mj_step``: the clock, suction seals and task outcomes."""
+        self.t_us += self.dt_us
+        self._steps += 1
+        for c in self._vacuum:  # cups with the valve open and nothing held yet
+            if c.active:
+                self._try_seal(c)
+        if self._steps % self._check_steps == 0:
+            self._check_tasks()
 
     def _loose_parts(self) -> tuple[list[tuple[CellState, int]], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Parts in play and not held by a cup, as (rows, qpos addr (k,3), dof addr (k,),

@@ -291,7 +291,8 @@ class ThreadCpuClock:
 @dataclass(slots=True)
 class JobRecord:
     """One job's timing, simulated microseconds except where named otherwise (``cpu_us`` and
-    ``wall_us`` are host time: the job's CPU time on every thread it used, and its wall time)."""
+    ``wall_us`` are host time: the job's CPU time on every thread it used, and its wall time;
+    ``cpu_us`` is None in ``model`` timing, which draws the duration and reads no CPU clock)."""
 
     node: str
     kind: str
@@ -300,7 +301,7 @@ class JobRecord:
     end_us: int
     queue_us: int
     duration_us: int
-    cpu_us: int
+    cpu_us: int | None
     wall_us: int
     throttled_us: int | None
     timing: str
@@ -361,6 +362,7 @@ class ComputeNode:
         core = 0 if self.cores == 1 else min(range(self.cores), key=self._free_at.__getitem__)
         start = max(arrival_us, self._free_at[core])
         throttled = None
+        cpu_ns: int | None
         if self.measured:
             throttled0 = read_throttled_ns() if self._cgroup_visible else None
             token = self._clock.start()
@@ -373,10 +375,13 @@ class ComputeNode:
                 throttled = None if after is None else (after - throttled0) // 1000
             cpu_ns = cpu.total_ns
             duration = self._measured_duration_us(kind, cpu, wall_ns)
-        else:  # the duration is drawn; the thread clock is kept for information only
-            cpu0, wall0 = time.thread_time_ns(), time.perf_counter_ns()
+        else:
+            # The duration is drawn. The wall time is kept for information; the thread's CPU
+            # time is not read: a syscall (microseconds) on each of thousands of jobs a simulated
+            # second, for a number the job's duration does not use.
+            wall0 = time.perf_counter_ns()
             result = fn(*args)
-            cpu_ns = time.thread_time_ns() - cpu0
+            cpu_ns = None
             wall_ns = max(1, time.perf_counter_ns() - wall0)
             duration = draw_model_us(self._job_model(kind), self._rng)
         end = start + duration
@@ -386,12 +391,13 @@ class ComputeNode:
             pending = self._unpublished[kind] = ([], [], [], [])
         pending[0].append(duration / 1e6)
         pending[1].append((start - arrival_us) / 1e6)
-        pending[2].append(cpu_ns / 1e9)
+        if cpu_ns is not None:
+            pending[2].append(cpu_ns / 1e9)
         if throttled is not None:  # zero too: a node inside its cgroup shows a flat line, not none
             pending[3].append(max(0, throttled) / 1e6)
         self.records.append(JobRecord(
             node=self.node, kind=kind, arrival_us=arrival_us, start_us=start, end_us=end,
-            queue_us=start - arrival_us, duration_us=duration, cpu_us=cpu_ns // 1000,
+            queue_us=start - arrival_us, duration_us=duration, cpu_us=None if cpu_ns is None else cpu_ns // 1000,
             wall_us=wall_ns // 1000, throttled_us=throttled, timing=self.profile.timing,
         ))
         if self.measured and arrival_us >= self._next_probe_us:
@@ -511,7 +517,10 @@ class ComputeNode:
                 "this run's compute latencies of this node cannot be trusted")
         return out
 
-    def record_dicts(self) -> list[dict[str, Any]]:
-        # Field by field: dataclasses.asdict deep-copies every value, and a node writes thousands
-        # of records a simulated second.
-        return [{n: getattr(r, n) for n in JOB_RECORD_FIELDS} for r in self.records]
+    def add_record_columns(self, columns: dict[str, list[Any]]) -> None:
+        """Append the records' fields to ``columns`` (a list per field, made if missing): a node
+        writes thousands of records a simulated second, so they reach the table a column at a
+        time, with no dict per record."""
+        records = self.records
+        for name in JOB_RECORD_FIELDS:
+            columns.setdefault(name, []).extend([getattr(r, name) for r in records])

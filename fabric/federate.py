@@ -214,12 +214,13 @@ class Federate:
     def _drain_jobs(self) -> None:
         if not self._job_nodes:
             return
-        jobs = self.table("jobs")
+        columns: dict[str, list[Any]] = {}
         for node in self._job_nodes:
             node.publish_metrics()
             if node.records:
-                jobs.extend(node.record_dicts())
+                node.add_record_columns(columns)
                 node.records.clear()
+        self.table("jobs").extend_columns(columns)
 
     def flush_records(self) -> None:
         """Write every table's buffered rows (a batch each): complete up to the window end."""

@@ -7,7 +7,8 @@ operations on the same C doubles and Python ints). A build lives outside the sou
 a stamp of the sources it was built from. A package that calls ``use_native`` at import puts the
 build first on its ``__path__`` only while that stamp matches its sources: an edited source runs
 as pure Python (said once in the log) until the next ``make native``, never as a stale build.
-``COSIM5G_PURE_PYTHON=1`` turns the builds off.
+``COSIM5G_PURE_PYTHON=1`` turns the builds off. The same build holds the few shared libraries
+built from C (``LIBRARIES``, loaded with ``library``) for code that must run without the GIL.
 
     python -m fabric.native build | status
 """
@@ -15,6 +16,7 @@ as pure Python (said once in the log) until the next ``make native``, never as a
 from __future__ import annotations
 
 import argparse
+import ctypes
 import fcntl
 import hashlib
 import importlib
@@ -24,6 +26,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 import tempfile
 from functools import lru_cache
 from pathlib import Path
@@ -45,7 +48,11 @@ MODULES = (
     "netsim/nr/link_adaptation.py",
     "netsim/nr/phy.py",
     "netsim/nr/scheduler.py",
+    "netsim/records.py",
 )
+# Shared libraries built from C sources, by name (loaded with ``library``): code that must run
+# with no GIL at all, which mypyc cannot give.
+LIBRARIES = {"cosim5g_stepper": "services/physics/native_stepper.c"}
 # Modules the compiled ones import: mypyc builds in the types it reads there, so an edit to them
 # makes a build stale too.
 DEPENDS = ("scenario/nr.py", "fabric/seeding.py")
@@ -65,7 +72,7 @@ def sources_digest() -> str:
     """sha256 over the names and contents of the compiled modules and those they import, and the
     interpreter's cache tag."""
     h = hashlib.sha256(sys.implementation.cache_tag.encode())
-    for rel in MODULES + DEPENDS:
+    for rel in MODULES + DEPENDS + tuple(LIBRARIES.values()):
         h.update(b"\0" + rel.encode() + b"\0")
         h.update((ROOT / rel).read_bytes())
     return h.hexdigest()
@@ -119,6 +126,19 @@ def use_native(package: str, path: list[str]) -> None:
         path.insert(0, str(sub))
 
 
+def library(name: str) -> ctypes.CDLL | None:
+    """The shared library ``name`` of LIBRARIES from a fresh build (None: no fresh build, or the
+    library does not load there; the caller runs its pure-Python way then)."""
+    d = _fresh_build()
+    if d is None:
+        return None
+    try:
+        return ctypes.CDLL(str(d / f"lib{name}.so"))
+    except OSError as exc:
+        log.warning("library %s in %s does not load (%s)", name, d, exc)
+        return None
+
+
 def compiled_loaded() -> list[str]:
     """The modules of MODULES imported so far from the compiled build."""
     names = [_module_name(rel) for rel in MODULES]
@@ -163,6 +183,8 @@ def _build_locked(out: Path) -> str:
                 "--build-temp", str(Path(tmp) / "obj")])
         finally:
             os.chdir(cwd)
+        for name, rel in LIBRARIES.items():
+            _compile_library(ROOT / rel, staging / f"lib{name}.so")
         sources_digest.cache_clear()
         if sources_digest() != digest:
             raise RuntimeError("sources changed during the build; run it again")
@@ -171,7 +193,13 @@ def _build_locked(out: Path) -> str:
         if out.exists():
             shutil.rmtree(out)
         staging.rename(out)
-    return f"compiled {len(MODULES)} modules into {out}"
+    return f"compiled {len(MODULES)} modules and {len(LIBRARIES)} library into {out}"
+
+
+def _compile_library(source: Path, out: Path) -> None:
+    """A shared library from one C file, with the compiler that builds Python's extensions."""
+    cc = (sysconfig.get_config_var("CC") or "cc").split()
+    subprocess.run([*cc, "-O2", "-shared", "-fPIC", "-pthread", str(source), "-o", str(out)], check=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -193,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     for rel in MODULES:  # each imported as the federates would
         importlib.import_module(_module_name(rel))
     loaded = compiled_loaded()
-    print(f"{len(loaded)} of {len(MODULES)} modules compiled ({native_dir()})")
+    libs = [name for name in LIBRARIES if library(name) is not None]
+    print(f"{len(loaded)} of {len(MODULES)} modules compiled, {len(libs)} of {len(LIBRARIES)} "
+          f"libraries ({native_dir()})")
     return 0
 
 

@@ -11,13 +11,11 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from operator import attrgetter
 from typing import Any
 
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
-from fabric.tables import PACKETS
 from netsim.cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
@@ -28,11 +26,8 @@ from netsim.cell import (
     PacketOutcome,
 )
 from netsim.nr.cell import NrCell
+from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
-
-_PACKET, _DELIVER, _CAUSE = attrgetter("packet"), attrgetter("deliver_us"), attrgetter("cause")
-_PACKET_ID, _FLOW, _UE = attrgetter("packet_id"), attrgetter("flow"), attrgetter("ue")
-_DIRECTION, _SIZE, _ENQUEUE = attrgetter("direction"), attrgetter("size_bytes"), attrgetter("enqueue_us")
 
 log = logging.getLogger(__name__)
 
@@ -234,32 +229,15 @@ class NetsimFederate(Federate):
     def _record(self, outcomes: list[PacketOutcome]) -> None:
         """Count and record the fates of ``outcomes``. Latencies are slot multiples, so the
         histogram gets each distinct value once with its count rather than once a packet."""
-        # A column at a time (PACKETS' columns, in their order): the same rows and batches as a
-        # row a packet, without a dict or nine appends per packet.
-        packets = list(map(_PACKET, outcomes))
-        dirs = list(map(_DIRECTION, packets))
-        sizes = list(map(_SIZE, packets))
-        enqueues = list(map(_ENQUEUE, packets))
-        delivers = list(map(_DELIVER, outcomes))
-        causes = list(map(_CAUSE, outcomes))
-        lats = [None if t is None else t - e for t, e in zip(delivers, enqueues, strict=True)]
-        self.packets.extend_columns(dict(zip(PACKETS.names, (
-            list(map(_PACKET_ID, packets)), list(map(_FLOW, packets)), list(map(_UE, packets)), dirs,
-            sizes, enqueues, delivers, lats, causes), strict=True)))
-        fates = self.fates
-        bits = self.delivered_bits
-        latencies: dict[str, Counter[int]] = {"ul": Counter(), "dl": Counter()}
-        for d, size, latency, cause in zip(dirs, sizes, lats, causes, strict=True):
-            if latency is None:
-                fates[d, cause or "lost"] += 1
-            else:
-                bits[d] += 8 * size
-                latencies[d][latency] += 1
+        # A column at a time: the same rows and batches as a row a packet, without a dict per
+        # packet (netsim.records, compiled).
+        columns = OutcomeColumns(outcomes)
+        self.packets.extend_columns(columns.as_dict())
+        latencies: dict[str, dict[int, int]] = {"ul": {}, "dl": {}}
+        columns.tally(self.fates, self.delivered_bits, latencies)
         for link, counts in latencies.items():
-            if counts:
-                fates[link, "delivered"] += counts.total()
-                for latency, n in counts.items():
-                    metrics.observe_many(self.latency_series[link], latency / 1e6, n)
+            for latency, n in counts.items():
+                metrics.observe_many(self.latency_series[link], latency / 1e6, n)
 
     def _publish_counts(self) -> None:
         """Move the packet and byte counts since the last call into the metric series."""

@@ -16,7 +16,7 @@ from domain.sensor import frame_offset_us, sensor_depth_mm
 from domain.world import World, spawn_plan
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
-from services.physics.stepper import StepAhead
+from services.physics.stepper import Stepper, step_ahead
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class PhysicsFederate(Federate):
                 self.next_out[f"frame-{i}"] = first
         self.schedule(0, self._publish_states)
         # Stepping ahead in a group (``work_ahead``), made at the first offer.
-        self._stepper: StepAhead | None = None
+        self._stepper: Stepper | None = None
         if self.detailed:
             self.next_out["states"] = 0
             # The renderer (GL context, shader compilation) is made before the run starts: on a
@@ -65,7 +65,7 @@ class PhysicsFederate(Federate):
         nxt = self.next_event_key()
         target = until_us if nxt is None else min(nxt[0], until_us)
         if self._stepper is None:
-            self._stepper = StepAhead(self.world.advance_to, f"{self.name}-step")
+            self._stepper = step_ahead(self.world, f"{self.name}-step")
         if not self._stepper.running and self.world.t_us + self.step_us <= target:
             self._stepper.start(target)
 

@@ -1,15 +1,114 @@
 """A thread that steps the world ahead while the group's thread processes the other members' events.
 
-``mj_step`` releases the GIL, so a step in this thread runs on the second core. The work is handed
-over once a simulated millisecond at 32 loops, so the handover is three locks used as binary
-semaphores: ``acquire`` waits in C with the GIL released and a ``release`` from the other thread
-wakes it, with less Python around each handover than an executor's futures and events.
+``mj_step`` releases the GIL, so a step in another thread runs on the second core. The work is
+handed over once a simulated millisecond at 32 loops. ``NativeStepAhead`` (the default where the
+native build is fresh) runs ``mj_step`` in a thread of C code that never takes the GIL
+(``native_stepper.c``): the step's Python parts (the conveyor drive before it, seals and task
+checks after) run in the caller's thread, and a handover is a semaphore post and a wait, with no
+thread waiting for the GIL held by the other. ``StepAhead`` is the pure-Python way: a Python
+thread runs ``advance(t_us)``, handed over with three locks used as binary semaphores (``acquire``
+waits in C with the GIL released and a ``release`` from the other thread wakes it); that thread
+needs the GIL around every step, so it is about a third slower at 32 loops.
 """
 
 from __future__ import annotations
 
+import ctypes
+import glob
+import os
 import threading
 from collections.abc import Callable
+from typing import Protocol
+
+import mujoco
+
+from domain.world import World
+from fabric import native
+
+
+class Stepper(Protocol):
+    """What the physics federate asks of a step-ahead thread."""
+
+    running: bool
+
+    def start(self, t_us: int) -> None: ...
+
+    def wait(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def step_ahead(world: World, name: str) -> Stepper:
+    """The native stepper of ``world`` where the native build and libmujoco load, else the
+    Python one."""
+    lib, mj_step = native.library("cosim5g_stepper"), _mj_step_address()
+    if lib is None or mj_step is None:
+        return StepAhead(world.advance_to, name)
+    return NativeStepAhead(world, lib, mj_step, name)
+
+
+def _mj_step_address() -> int | None:
+    """Where ``mj_step`` is in the libmujoco the bindings loaded (not another copy of it)."""
+    for path in glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")):
+        try:
+            lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
+        except OSError:
+            continue
+        return ctypes.cast(lib.mj_step, ctypes.c_void_p).value
+    return None
+
+
+class NativeStepAhead:
+    """Runs one step of ``world`` at a time in a C thread: ``start`` does the step's Python part
+    before ``mj_step`` and hands the step over, ``wait`` takes it back and does the part after.
+    The caller touches the world only between ``wait`` and the next ``start``."""
+
+    def __init__(self, world: World, lib: ctypes.CDLL, mj_step: int, name: str) -> None:
+        ptr = ctypes.c_void_p
+        lib.cosim_stepper_new.restype = ptr
+        lib.cosim_stepper_new.argtypes = [ptr, ptr, ptr]
+        for fn in (lib.cosim_stepper_serve, lib.cosim_stepper_go, lib.cosim_stepper_wait,
+                   lib.cosim_stepper_stop, lib.cosim_stepper_free):
+            fn.restype, fn.argtypes = None, [ptr]
+        self._world, self._lib = world, lib
+        self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address)
+        if not self._handle:
+            raise MemoryError("native stepper: no memory for its semaphores")
+        self.running = False
+        # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.
+        self._thread = threading.Thread(target=lib.cosim_stepper_serve, args=(self._handle,),
+                                        name=name, daemon=True)
+        self._thread.start()
+
+    def start(self, t_us: int) -> None:
+        """Begin the world's next step if it ends by ``t_us`` (the caller's event steps on from
+        there)."""
+        if self.running:
+            raise RuntimeError("a step ahead is running already")
+        world = self._world
+        if world.t_us + world.dt_us > t_us:
+            return
+        world.before_step()
+        self._lib.cosim_stepper_go(self._handle)
+        self.running = True
+
+    def wait(self) -> None:
+        """Wait for the running step, if any, and end it."""
+        if not self.running:
+            return
+        self._lib.cosim_stepper_wait(self._handle)
+        self.running = False
+        self._world.after_step()
+
+    def close(self) -> None:
+        """Wait for the running step (the world is not stepped on) and end the thread."""
+        if self.running:
+            self._lib.cosim_stepper_wait(self._handle)
+            self.running = False
+        self._lib.cosim_stepper_stop(self._handle)
+        self._thread.join(timeout=10)
+        if not self._thread.is_alive():
+            self._lib.cosim_stepper_free(self._handle)
 
 
 class StepAhead:

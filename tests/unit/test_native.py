@@ -74,6 +74,19 @@ def test_no_build_means_pure_python_without_a_word(fake_build: Path, caplog: pyt
     assert path == ["/src/netsim"] and not caplog.text
 
 
+def test_a_library_comes_from_a_fresh_build_only(fake_build: Path, caplog: pytest.LogCaptureFixture,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    assert native.library("cosim5g_stepper") is None  # in the build's stamp, not in its directory
+    assert "does not load" in caplog.text
+    real = native.ROOT / "build" / "native" / sys.implementation.cache_tag / "libcosim5g_stepper.so"
+    if real.exists():
+        (fake_build / real.name).write_bytes(real.read_bytes())
+        assert native.library("cosim5g_stepper") is not None
+    monkeypatch.setenv(native.PURE_ENV, "1")
+    native._fresh_build.cache_clear()
+    assert native.library("cosim5g_stepper") is None
+
+
 STANDALONE = """
 import json, sys
 from fabric.native import compiled_loaded

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
+from fabric.tables import PACKETS
 from netsim.cell import LOSS_BUFFER, LOSS_DELAY_BUDGET, FlowQos, Packet
+from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
 
 
@@ -55,3 +59,23 @@ def test_delay_budget_and_buffer_overflow() -> None:
     out = run(c, 6)
     causes = [o.cause for o in out]
     assert causes.count(None) == 3 and causes.count(LOSS_DELAY_BUDGET) == 1
+
+
+def test_outcomes_become_the_packets_tables_columns_and_counts() -> None:
+    c = cell(buffer_bytes=3000)
+    refused = [o for i in range(3) if (o := c.enqueue(Packet(i, "cam/video", "ue0", "ul", 1500, 0)))]
+    assert len(refused) == 1  # the third does not fit the buffer
+    outcomes = run(c, 3)
+    columns = OutcomeColumns(outcomes + refused)
+    table = columns.as_dict()
+    assert list(table) == PACKETS.names
+    assert table["packet_id"] == [o.packet.packet_id for o in outcomes + refused]
+    assert table["latency_us"] == [1000, 2000, None]
+    assert table["lost_cause"] == [None, None, LOSS_BUFFER]
+    fates: Counter[tuple[str, str]] = Counter()
+    bits = {"ul": 0, "dl": 0}
+    latencies: dict[str, dict[int, int]] = {"ul": {}, "dl": {}}
+    columns.tally(fates, bits, latencies)
+    assert fates[("ul", "delivered")] == 2 and bits == {"ul": 2 * 8 * 1500, "dl": 0}
+    assert latencies == {"ul": {1000: 1, 2000: 1}, "dl": {}}
+    assert fates[("ul", LOSS_BUFFER)] == 1

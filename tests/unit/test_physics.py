@@ -16,9 +16,10 @@ from domain.controller import PickController
 from domain.kinematics import ArmKinematics
 from domain.scene import build_mjcf, object_pool_size
 from domain.world import World, spawn_plan
+from fabric import native
 from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
-from services.physics.stepper import StepAhead
+from services.physics.stepper import NativeStepAhead, StepAhead, step_ahead
 
 # UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]
@@ -240,6 +241,37 @@ def test_step_ahead_runs_each_call_in_its_thread_and_hands_back_its_error() -> N
     stepper.close()  # waits for the running call
     assert calls == [(1000, "physics-step"), (2000, "physics-step"), (-1, "physics-step"),
                      (3000, "physics-step")]
+    assert not stepper._thread.is_alive()
+
+
+class NativeSteppedWorld(World):
+    """A world whose every ``mj_step`` runs in the native stepper's C thread."""
+
+    def advance_to(self, t_us: int) -> None:
+        stepper = self.__dict__.setdefault("stepper", step_ahead(self, "physics-step"))
+        while self.t_us + self.dt_us <= t_us:
+            stepper.start(t_us)
+            stepper.wait()
+
+
+def test_native_stepper_steps_the_world_exactly_as_advance_to() -> None:
+    """Picks and places with the steps' mj_step in the C thread: the same tasks, the same state
+    to the bit."""
+    if native.library("cosim5g_stepper") is None:
+        pytest.skip("no fresh native build here (make native)")
+    sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {**VARIED, "object_period_s": 3.0}})
+    plain, threaded = World(sc), NativeSteppedWorld(sc)
+    plain_result, threaded_result = run_ideal(sc, world=plain), run_ideal(sc, world=threaded)
+    stepper = threaded.__dict__["stepper"]
+    assert isinstance(stepper, NativeStepAhead)
+    placed = [t for t in plain_result.tasks if t["outcome"] == "placed"]
+    assert len(placed) >= 2  # the steps covered suction seals and releases
+    assert threaded_result.tasks == plain_result.tasks
+    assert threaded.t_us == plain.t_us
+    for name in ("qpos", "qvel", "act", "ctrl", "eq_active"):
+        assert getattr(threaded.data, name).tobytes() == getattr(plain.data, name).tobytes(), name
+    stepper.start(threaded.t_us + threaded.dt_us)
+    stepper.close()  # waits for the running step
     assert not stepper._thread.is_alive()
 
 

@@ -1,0 +1,63 @@
+"""A slot's packet outcomes as the columns of the ``packets`` table and as counts per fate.
+
+Tens of thousands of packets a simulated second pass through here, a field at a time, so the
+module is compiled with the cell (``fabric.native``): the loops below then read the outcomes'
+slots directly instead of through Python attribute lookups.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from netsim.cell import PacketOutcome
+
+
+class OutcomeColumns:
+    """The ``packets`` table's columns (``fabric.tables.PACKETS``, in its order) of some outcomes."""
+
+    def __init__(self, outcomes: list[PacketOutcome]) -> None:
+        self.packet_id: list[int] = []
+        self.flow: list[str] = []
+        self.ue: list[str] = []
+        self.dir: list[str] = []
+        self.size_bytes: list[int] = []
+        self.enqueue_us: list[int] = []
+        self.deliver_us: list[int | None] = []
+        self.latency_us: list[int | None] = []
+        self.lost_cause: list[str | None] = []
+        for o in outcomes:
+            p = o.packet
+            self.packet_id.append(p.packet_id)
+            self.flow.append(p.flow)
+            self.ue.append(p.ue)
+            self.dir.append(p.direction)
+            self.size_bytes.append(p.size_bytes)
+            self.enqueue_us.append(p.enqueue_us)
+            t = o.deliver_us
+            self.deliver_us.append(t)
+            self.latency_us.append(None if t is None else t - p.enqueue_us)
+            self.lost_cause.append(o.cause)
+
+    def as_dict(self) -> dict[str, list[Any]]:
+        return {"packet_id": self.packet_id, "flow": self.flow, "ue": self.ue, "dir": self.dir,
+                "size_bytes": self.size_bytes, "enqueue_us": self.enqueue_us,
+                "deliver_us": self.deliver_us, "latency_us": self.latency_us,
+                "lost_cause": self.lost_cause}
+
+    def tally(self, fates: dict[tuple[str, str], int], bits: dict[str, int],
+              latencies: dict[str, dict[int, int]]) -> None:
+        """Add the outcomes to ``fates`` (per direction and fate: ``delivered`` or the loss
+        cause), the delivered ``bits`` per direction and the count of each latency per direction."""
+        for k in range(len(self.dir)):
+            d = self.dir[k]
+            latency = self.latency_us[k]
+            if latency is None:
+                cause = self.lost_cause[k]
+                key = (d, cause if cause is not None else "lost")
+                fates[key] = fates.get(key, 0) + 1
+            else:
+                bits[d] += 8 * self.size_bytes[k]
+                counts = latencies[d]
+                counts[latency] = counts.get(latency, 0) + 1
+                key = (d, "delivered")
+                fates[key] = fates.get(key, 0) + 1
