@@ -38,10 +38,11 @@ setup: ## check the host (Python 3.11 venv, Docker + compose, EGL/Mesa); as root
 
 install: $(BIN)/cosim5g ## create .venv and install the project with its test tools
 
-# The NR cell compiled with mypyc (fabric.native): the same code about 1.4 times as fast. It is used
-# only while its sources are unchanged, so every target that runs the simulator rebuilds it first
-# (a no-op when up to date); without a C compiler netsim runs as pure Python.
-native: $(BIN)/cosim5g ## compile the NR cell's modules with mypyc into build/native (used while their sources are unchanged)
+# The NR cell compiled with mypyc (fabric.native): the same code about 1.4 times as fast, and the
+# physics stepper's C thread. It is used only while its sources are unchanged, so every target that
+# runs the simulator rebuilds it first (a no-op when up to date); without a C compiler netsim runs
+# as pure Python and physics steps in a Python thread.
+native: $(BIN)/cosim5g ## compile the NR cell's modules (mypyc) and the physics stepper (C) into build/native (used while their sources are unchanged)
 	-$(BIN)/python -m fabric.native build
 
 run: $(BIN)/cosim5g native ## run SCENARIO (default co_design) in the process runtime, print KPIs

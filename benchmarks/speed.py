@@ -39,7 +39,7 @@ from typing import Any
 
 from coordinator.run import execute_run, federate_specs
 from fabric.heap import simulation_heap
-from fabric.native import compiled_loaded
+from fabric.native import compiled_loaded, library
 from netsim.standalone import run_uplink_cameras
 from scenario.schema import load_scenario
 from services.main import PROFILE_DIR_ENV
@@ -128,7 +128,7 @@ def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[s
     lines = ["# Speed", "",
              f"{meta['date']}, {meta['cores']} cores, load average {meta['load_start']:.1f} at the start "
              f"and {meta['load_end']:.1f} at the end. Speed = simulated s / wall s. NR cell: "
-             f"{meta['netsim_build']}.", "",
+             f"{meta['netsim_build']}; physics stepper: {meta['stepper']}.", "",
              "| case | speed | windows/s | window protocol share (upper bound) | busiest federate | tasks, success |",
              "|---|---:|---:|---:|---|---|"]
     for name, r in runs.items():
@@ -174,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cores": os.cpu_count(),
             "load_start": os.getloadavg()[0], "duration_s": args.duration_s, "loops": args.loops,
             # The federates inherit this interpreter and environment, so its view is theirs.
-            "netsim_build": "compiled" if compiled_loaded() else "pure Python"}
+            "netsim_build": "compiled" if compiled_loaded() else "pure Python",
+            "stepper": "C thread" if library("cosim5g_stepper") is not None else "Python thread"}
     runs: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="cosim5g-speed-") as tmp:
         results = Path(tmp)
