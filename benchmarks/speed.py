@@ -43,6 +43,7 @@ from fabric.native import compiled_loaded, library
 from netsim.standalone import run_uplink_cameras
 from scenario.schema import load_scenario
 from services.main import PROFILE_DIR_ENV
+from services.physics import stepper
 
 ROOT = Path(__file__).parents[1]
 CASES = ("k0", "k1", "netsim")
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             "load_start": os.getloadavg()[0], "duration_s": args.duration_s, "loops": args.loops,
             # The federates inherit this interpreter and environment, so its view is theirs.
             "netsim_build": "compiled" if compiled_loaded() else "pure Python",
-            "stepper": "C thread" if library("cosim5g_stepper") is not None else "Python thread"}
+            "stepper": "C thread" if library(stepper.LIBRARY) is not None else "Python thread"}
     runs: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="cosim5g-speed-") as tmp:
         results = Path(tmp)

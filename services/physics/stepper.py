@@ -26,6 +26,9 @@ import mujoco
 from domain.world import World
 from fabric import native
 
+# The native build's library (fabric.native.LIBRARIES) that holds the C thread.
+LIBRARY = "cosim5g_stepper"
+
 
 class Stepper(Protocol):
     """What the physics federate asks of a step-ahead thread."""
@@ -42,7 +45,7 @@ class Stepper(Protocol):
 def step_ahead(world: World, name: str) -> Stepper:
     """The native stepper of ``world`` where the native build and libmujoco load, else the
     Python one."""
-    lib, mj_step = native.library("cosim5g_stepper"), _mj_step_address()
+    lib, mj_step = native.library(LIBRARY), _mj_step_address()
     if lib is None or mj_step is None:
         return StepAhead(world.advance_to, name)
     return NativeStepAhead(world, lib, mj_step, name)

@@ -19,7 +19,7 @@ from domain.world import World, spawn_plan
 from fabric import native
 from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
-from services.physics.stepper import NativeStepAhead, StepAhead, step_ahead
+from services.physics.stepper import LIBRARY, NativeStepAhead, StepAhead, step_ahead
 
 # UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]
@@ -247,22 +247,25 @@ def test_step_ahead_runs_each_call_in_its_thread_and_hands_back_its_error() -> N
 class NativeSteppedWorld(World):
     """A world whose every ``mj_step`` runs in the native stepper's C thread."""
 
+    def __init__(self, sc: Any) -> None:
+        super().__init__(sc)
+        self.stepper = step_ahead(self, "physics-step")
+
     def advance_to(self, t_us: int) -> None:
-        stepper = self.__dict__.setdefault("stepper", step_ahead(self, "physics-step"))
         while self.t_us + self.dt_us <= t_us:
-            stepper.start(t_us)
-            stepper.wait()
+            self.stepper.start(t_us)
+            self.stepper.wait()
 
 
 def test_native_stepper_steps_the_world_exactly_as_advance_to() -> None:
     """Picks and places with the steps' mj_step in the C thread: the same tasks, the same state
     to the bit."""
-    if native.library("cosim5g_stepper") is None:
+    if native.library(LIBRARY) is None:
         pytest.skip("no fresh native build here (make native)")
     sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {**VARIED, "object_period_s": 3.0}})
     plain, threaded = World(sc), NativeSteppedWorld(sc)
     plain_result, threaded_result = run_ideal(sc, world=plain), run_ideal(sc, world=threaded)
-    stepper = threaded.__dict__["stepper"]
+    stepper = threaded.stepper
     assert isinstance(stepper, NativeStepAhead)
     placed = [t for t in plain_result.tasks if t["outcome"] == "placed"]
     assert len(placed) >= 2  # the steps covered suction seals and releases
