@@ -238,6 +238,10 @@ class World:
         self._check_steps = max(1, CHECK_PERIOD_US // self.dt_us)
         self._steps = 0
         self._vacuum: list[CellState] = []
+        # What observations (``joint_state``, ``objects``) read: the live state, or a copy of it
+        # held while the next step runs in another thread (``hold_observations``).
+        self._held = (np.empty_like(self.data.qpos), np.empty_like(self.data.qvel))
+        self._seen_qpos, self._seen_qvel = self.data.qpos, self.data.qvel
 
     # ---- stepping ---------------------------------------------------------------------------
     def advance_to(self, t_us: int) -> None:
@@ -255,6 +259,18 @@ class World:
         if self._on_belt.size:  # belt speed along x, nothing across
             self.data.qvel[self._on_belt] = self.sc.cell.belt_speed_m_s
             self.data.qvel[self._on_belt + 1] = 0.0
+
+    def hold_observations(self) -> None:
+        """Until ``release_observations``, observations show the state as it is now, while a step
+        runs elsewhere (called before ``before_step``, whose belt drive sets velocities)."""
+        qpos, qvel = self._held
+        np.copyto(qpos, self.data.qpos)
+        np.copyto(qvel, self.data.qvel)
+        self._seen_qpos, self._seen_qvel = qpos, qvel
+
+    def release_observations(self) -> None:
+        """Observations show the live state again (the step that ran elsewhere has ended)."""
+        self._seen_qpos, self._seen_qvel = self.data.qpos, self.data.qvel
 
     def after_step(self) -> None:
         """What a step ends with, after ``mj_step``: the clock, suction seals and task outcomes."""
@@ -490,7 +506,7 @@ class World:
     # ---- observation ------------------------------------------------------------------------
     def joint_state(self, cell: int) -> dict[str, Any]:
         c = self.cells[cell]
-        return {"q": [float(v) for v in self.data.qpos[c.qadr]],
+        return {"q": [float(v) for v in self._seen_qpos[c.qadr]],
                 "gripped": c.gripped is not None}
 
     def tool_position(self, cell: int) -> np.ndarray:
@@ -504,8 +520,8 @@ class World:
         out = []
         for slot, task in sorted(c.active.items(), key=lambda kv: kv[1].task_id):
             a, va = c.obj_qadr[slot], c.obj_vadr[slot]
-            out.append({"task_id": task.task_id, "p": [float(v) for v in self.data.qpos[a:a + 3] - c.origin],
-                        "v": [float(v) for v in self.data.qvel[va:va + 3]],
+            out.append({"task_id": task.task_id, "p": [float(v) for v in self._seen_qpos[a:a + 3] - c.origin],
+                        "v": [float(v) for v in self._seen_qvel[va:va + 3]],
                         "gripped": c.gripped == slot})
         return out
 
@@ -536,12 +552,13 @@ class World:
                 self.model.geom_group[hidden] = self._view.groups[hidden]
         return rgb, dep
 
-    def take_ended(self) -> list[dict[str, Any]]:
-        """Rows of the tasks that ended since the last call, which ``tasks`` then forgets: a long
-        run keeps only the tasks in play (``finish`` gives the rest)."""
-        ended = [t for t in self.tasks if t.outcome is not None]
+    def take_ended(self, upto_us: int) -> list[dict[str, Any]]:
+        """Rows of the tasks that ended by ``upto_us`` since the last call, which ``tasks`` then
+        forgets: a long run keeps only the tasks in play (``finish`` gives the rest). The bound
+        keeps the rows' order independent of how far a step ahead had got."""
+        ended = [t for t in self.tasks if t.end_us is not None and t.end_us <= upto_us]
         if ended:
-            self.tasks = [t for t in self.tasks if t.outcome is None]
+            self.tasks = [t for t in self.tasks if t.end_us is None or t.end_us > upto_us]
         return [t.row() for t in ended]
 
     def finish(self) -> list[dict[str, Any]]:

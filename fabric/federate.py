@@ -185,10 +185,17 @@ class Federate:
         return None
 
     def work_ahead(self, until_us: int) -> None:
-        """In a group: the group's thread turns to the other members' events. A member may start,
-        in a background thread, the work its next event would begin with, if that work depends on
-        nothing with a time before ``until_us`` that it has not processed yet: no message from
-        another member can arrive before then. Its next event must wait for that work to end."""
+        """In a group, offered after every member's event: the group's thread turns to the
+        members' next events. A member may start, in a background thread, work its later events
+        would begin with, if that work depends on nothing with a time before ``until_us`` that it
+        has not processed yet: no message can reach it before then (``next_send_us``). Its
+        events must not see that work's effects before their time."""
+
+    def next_send_us(self, plane: str, now_us: int) -> int:
+        """In a group: the earliest simulated time, from ``now_us`` (the group's time) on, at which
+        this federate may send a message on ``plane``; with it the group tells a member working
+        ahead until when no message can reach it. By default ``now_us``: at any time."""
+        return now_us
 
     def collect_records(self) -> None:
         """Move records kept elsewhere (e.g. in a model) into the tables; called before every
@@ -259,15 +266,18 @@ class Federate:
     def results_dir(self) -> Path:
         return self.ctx.results_dir
 
-    def schedule(self, t_us: int, fn: Callable[..., None], *args: Any, after_inputs: bool = False) -> None:
-        """Run ``fn(*args)`` at simulated time ``t_us`` (>= now). Events at equal times run in
-        scheduling order; ``after_inputs`` puts the event after every input message of that
-        time (e.g. a radio slot that must see every packet handed over at its start)."""
+    def schedule(self, t_us: int, fn: Callable[..., None], *args: Any,
+                 after_inputs: bool = False) -> tuple[int, str, int]:
+        """Run ``fn(*args)`` at simulated time ``t_us`` (>= now); the event's key, as
+        ``next_event_key`` will give it. Events at equal times run in scheduling order;
+        ``after_inputs`` puts the event after every input message of that time (e.g. a radio slot
+        that must see every packet handed over at its start)."""
         if t_us < self.now:
             raise CausalityError(f"{self.name}: event scheduled at {t_us} us, before now {self.now} us")
         self._event_seq += 1
         src = _LAST if after_inputs else self.name
         heapq.heappush(self._heap, (t_us, src, self._event_seq, _EVENT, (fn, args)))
+        return t_us, src, self._event_seq
 
     def send(self, dst: str, plane: str, kind: str, t_us: int, body: dict[str, Any] | None = None,
              blob: bytes | None = None) -> None:

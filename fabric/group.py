@@ -18,10 +18,12 @@ with anything to do, the conductor may give it a window up to that horizon, long
 ``window_us``: the conductor and the group then meet once per long window instead of once per
 slot, with the same result. With no detailed loop the horizon never comes.
 
-After each of a member's events the group offers it ``work_ahead``: until the end of that event's
-base window no message from another member can reach it, so work its next event would begin with
-may start at once in a background thread (physics steps the world there while the other members'
-events run: ``mj_step`` releases the GIL).
+After every event the group offers ``work_ahead`` to the members that work ahead, with the time
+until which no message can reach them: the end of the window for messages from outside, and for
+each other member the end of the base window in which it may next send on the member's planes
+(``Federate.next_send_us``; by default the current base window). Work their later events would
+begin with may then run in a background thread (physics steps the world there while the other
+members' events run: ``mj_step`` releases the GIL).
 
 Each member keeps its own records, trace hash and ``stopped`` report; a member that fails fails
 the group's window with the member's name.
@@ -53,6 +55,10 @@ class FederateGroup(Federate):
         for m in members:
             m.cohosted = names
             m.deliver_local = self._deliver_local
+        # Members that work ahead (``work_ahead``), with the other members and the planes that
+        # may reach them.
+        self._workers = [(m, [o for o in members if o is not m], m.data_planes)
+                         for m in members if type(m).work_ahead is not Federate.work_ahead]
         self._current: Federate | None = None  # the member processing, to name it when it fails
         # Delivery times of the messages from outside not yet processed: a member's horizon
         # holds only until one of them arrives, which may make it send at once.
@@ -112,9 +118,14 @@ class FederateGroup(Federate):
             self._current = best
             t0 = time.perf_counter()
             best.process_next()
-            # A message from another member sent now is delivered at the end of this base
-            # window at the earliest.
-            best.work_ahead((best.now // base + 1) * base)
+            now = best.now
+            for worker, others, planes in self._workers:
+                # A message sent at s is delivered at the end of s's base window at the earliest.
+                until = t_end
+                for o in others:
+                    for plane in planes:
+                        until = min(until, (o.next_send_us(plane, now) // base + 1) * base)
+                worker.work_ahead(until)
             best._busy_s += time.perf_counter() - t0
         for m in members:
             self._current = m

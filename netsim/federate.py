@@ -88,6 +88,9 @@ class NetsimFederate(Federate):
         # (``external_horizon_us``).
         self.outside_in_cell: Counter[tuple[str, str]] = Counter()
 
+    def next_send_us(self, plane: str, now_us: int) -> int:
+        return now_us if plane == "net" else NEVER_US  # deliveries are its only messages
+
     def external_horizon_us(self) -> int | None:
         # Deliveries are its only messages: while the cell holds none for a federate outside the
         # group (the abstract loops' packets go back to their group), it sends nothing out. Else

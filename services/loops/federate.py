@@ -80,7 +80,11 @@ class LoopsFederate(Federate):
             lp = self.loops[i]
             self.record_jobs(lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
         self.schedule(0, self._control_tick)
+        self.next_tick_us = 0  # when ``_control_tick``, its only sender of commands, runs next
         self.schedule(0, self._policy_tick)
+
+    def next_send_us(self, plane: str, now_us: int) -> int:
+        return max(self.next_tick_us, now_us) if plane == "act" else now_us
 
     def external_horizon_us(self) -> int | None:
         # It sends only to physics and netsim: nothing leaves a group holding both.
@@ -204,6 +208,7 @@ class LoopsFederate(Federate):
         # One message for all arms: they share the latest compute completion of this tick.
         self.send("physics", "act", "command", latest + sc.robot.actuation_latency_us, {"commands": commands})
         nxt = self.now + sc.robot.control_period_us
+        self.next_tick_us = nxt if nxt < sc.duration_us else NEVER_US
         if nxt < sc.duration_us:
             self.schedule(nxt, self._control_tick)
 

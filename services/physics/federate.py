@@ -6,6 +6,7 @@ Sensor readout and actuation are local wires with fixed latencies (>= the window
 
 from __future__ import annotations
 
+import heapq
 import logging
 from typing import Any
 
@@ -23,6 +24,7 @@ log = logging.getLogger(__name__)
 
 class PhysicsFederate(Federate):
     role = "physics"
+    data_planes = ("act",)  # it takes commands only
 
     def setup(self) -> None:
         sc = self.scenario
@@ -40,16 +42,24 @@ class PhysicsFederate(Federate):
         # When the next frame of each detailed loop and the next joint states are due: what
         # leaves a group holding physics and the abstract loops (``external_horizon_us``).
         self.next_out: dict[str, int] = {}
+        # Keys of the pending events that change the world or read its live state: spawns,
+        # commands and the detailed loops' frames (rendering reads the whole mjData). A step may
+        # run ahead past the other events, which only observe (``World.hold_observations``),
+        # but never past one of these.
+        self._changes: list[tuple[int, str, int]] = []
         for i in range(sc.loops):
             for at, part in spawn_plan(sc, self.rng(f"spawn-c{i}"), self.step_us):
-                self.schedule(at, self._spawn, i, part)
+                heapq.heappush(self._changes, self.schedule(at, self._spawn, i, part))
             first = frame_offset_us(i, sc.loops, self.frame_period, self.step_us)
-            self.schedule(first, self._frame, i)
+            key = self.schedule(first, self._frame, i)
             if i in self.detailed:
+                heapq.heappush(self._changes, key)
                 self.next_out[f"frame-{i}"] = first
         self.schedule(0, self._publish_states)
-        # Stepping ahead in a group (``work_ahead``), made at the first offer.
+        # Stepping ahead in a group (``work_ahead``), made at the first offer; until when no
+        # command can arrive, as the group last told.
         self._stepper: Stepper | None = None
+        self._until = 0
         if self.detailed:
             self.next_out["states"] = 0
             # The renderer (GL context, shader compilation) is made before the run starts: on a
@@ -58,16 +68,25 @@ class PhysicsFederate(Federate):
 
     # ---- stepping ahead -----------------------------------------------------------------------
     def work_ahead(self, until_us: int) -> None:
-        """Step the world in the background up to where the next event would step it first (at
-        most ``until_us``): every event begins with ``advance_to(now)`` and every input before
-        ``until_us`` is here already, so the steps are the same. ``mj_step`` releases the GIL, so
-        it runs beside the other members' events on the second core."""
-        nxt = self.next_event_key()
-        target = until_us if nxt is None else min(nxt[0], until_us)
-        if self._stepper is None:
-            self._stepper = step_ahead(self.world, f"{self.name}-step")
-        if not self._stepper.running and self.world.t_us + self.step_us <= target:
-            self._stepper.start(target)
+        """Step the world in the background, one step at a time, up to the next event that
+        changes it (at most ``until_us``: every input before then is here already). A step holds
+        the observations of its start (``World.hold_observations``), which is the state the events
+        before its end observe, so it may start before they run; it ends (``poll``) once they
+        have. So the steps and what the events see are the same. ``mj_step`` releases the GIL,
+        so it runs beside the group's events on the second core."""
+        self._until = until_us
+        stepper = self._stepper
+        if stepper is None:
+            stepper = self._stepper = step_ahead(self.world, f"{self.name}-step")
+        world = self.world
+        if stepper.running:
+            nxt = self.next_event_key()
+            if (nxt is not None and nxt[0] < world.t_us + self.step_us) or not stepper.poll():
+                return
+        changes = self._changes
+        target = min(changes[0][0], until_us) if changes else until_us
+        if world.t_us + self.step_us <= target:
+            stepper.start(target)
 
     def _settle(self) -> None:
         """Wait for the step running ahead, if any (its error is raised here)."""
@@ -75,7 +94,25 @@ class PhysicsFederate(Federate):
             self._stepper.wait()
 
     def process_next(self) -> None:
-        self._settle()
+        key = self.next_event_key()
+        assert key is not None, "process_next with no event pending"
+        t_us, changes = key[0], self._changes
+        observes = not (changes and changes[0] == key)
+        if not observes:
+            heapq.heappop(changes)
+        stepper, world = self._stepper, self.world
+        if stepper is not None:  # in a group, stepping ahead
+            if stepper.running:
+                if world.t_us + self.step_us <= t_us:
+                    stepper.wait()
+                elif not observes:
+                    raise RuntimeError(f"{self.name}: a step ran ahead past a change to the world at {t_us} us")
+            if observes and not stepper.running:
+                # The next step may run while this event observes the state at its time.
+                world.advance_to(t_us)
+                self.work_ahead(self._until)
+        if world.t_us > t_us:
+            raise RuntimeError(f"{self.name}: the world stepped to {world.t_us} us past an event at {t_us} us")
         super().process_next()
 
     # ---- events -------------------------------------------------------------------------------
@@ -103,7 +140,9 @@ class PhysicsFederate(Federate):
                       {"loop": loop, "capture_us": self.now, "objects": self.world.objects(loop)})
         nxt = self.now + self.frame_period
         if nxt < sc.duration_us:
-            self.schedule(nxt, self._frame, loop)
+            key = self.schedule(nxt, self._frame, loop)
+            if loop < sc.detailed_loops:
+                heapq.heappush(self._changes, key)
         if loop < sc.detailed_loops:
             self.next_out[f"frame-{loop}"] = nxt if nxt < sc.duration_us else NEVER_US
 
@@ -129,6 +168,10 @@ class PhysicsFederate(Federate):
         if self.abstract and "loops" not in self.cohosted:
             return None
         return min(self.next_out.values(), default=NEVER_US)
+
+    def accept(self, msg: Message) -> None:
+        heapq.heappush(self._changes, (msg.t_us, msg.src, msg.seq))
+        super().accept(msg)
 
     def on_message(self, msg: Message) -> None:
         if msg.kind != "command":
@@ -161,8 +204,8 @@ class PhysicsFederate(Federate):
             world.close()
 
     def collect_records(self) -> None:
-        self._settle()
-        self._record_tasks(self.world.take_ended())
+        # No wait for a step running ahead: tasks change only when it ends, in this thread.
+        self._record_tasks(self.world.take_ended(self.now))
 
     def finish(self, reason: str) -> dict[str, Any]:
         self._settle()

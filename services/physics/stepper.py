@@ -1,15 +1,17 @@
 """A thread that steps the world ahead while the group's thread processes the other members' events.
 
 ``mj_step`` releases the GIL, so a step in another thread runs on the second core. The work is
-handed over once a simulated millisecond at 32 loops. ``NativeStepAhead`` (the default where the
-native build is fresh) runs ``mj_step`` in a thread of C code that never takes the GIL
-(``native_stepper.c``): the step's Python parts (the conveyor drive before it, seals and task
-checks after) run in the caller's thread, and a handover is a semaphore post and a wait, with no
-thread waiting for the GIL held by the other. ``StepAhead`` is the pure-Python way: a Python
-thread runs ``advance(t_us)``, handed over with three locks used as binary semaphores (``acquire``
-waits in C with the GIL released and a ``release`` from the other thread wakes it); that thread
-must take the GIL from the busy group's thread around every step, so each handover costs the
-group's thread more.
+handed over once a simulated millisecond at 32 loops. Either stepper runs only ``mj_step`` in its
+thread: the step's Python parts (the conveyor drive before it, seals and task checks after) run in
+the caller's thread, in ``start`` and ``wait``, and between the two the world's observations show
+the state as of ``start`` (``World.hold_observations``), so the caller may read them while the
+step runs. ``NativeStepAhead`` (the default where the native build is fresh) runs ``mj_step`` in a
+thread of C code that never takes the GIL (``native_stepper.c``): a handover is a semaphore post
+and a wait, with no thread waiting for the GIL held by the other. ``StepAhead`` is the pure-Python
+way: a Python thread handed the step with two locks used as binary semaphores (``acquire`` waits
+in C with the GIL released and a ``release`` from the other thread wakes it); that thread must
+take the GIL from the busy group's thread around every step, so each handover costs the group's
+thread more.
 """
 
 from __future__ import annotations
@@ -18,7 +20,6 @@ import ctypes
 import glob
 import os
 import threading
-from collections.abc import Callable
 from typing import Protocol
 
 import mujoco
@@ -31,13 +32,17 @@ LIBRARY = "cosim5g_stepper"
 
 
 class Stepper(Protocol):
-    """What the physics federate asks of a step-ahead thread."""
+    """What the physics federate asks of a step-ahead thread: ``start`` begins the world's next
+    step if it ends by ``t_us``; until ``wait`` the caller must not change the world, and reads
+    its observations as of ``start``."""
 
     running: bool
 
     def start(self, t_us: int) -> None: ...
 
     def wait(self) -> None: ...
+
+    def poll(self) -> bool: ...
 
     def close(self) -> None: ...
 
@@ -47,7 +52,7 @@ def step_ahead(world: World, name: str) -> Stepper:
     Python one."""
     lib, mj_step = native.library(LIBRARY), _mj_step_address()
     if lib is None or mj_step is None:
-        return StepAhead(world.advance_to, name)
+        return StepAhead(world, name)
     return NativeStepAhead(world, lib, mj_step, name)
 
 
@@ -62,27 +67,25 @@ def _mj_step_address() -> int | None:
     return None
 
 
-class NativeStepAhead:
-    """Runs one step of ``world`` at a time in a C thread: ``start`` does the step's Python part
-    before ``mj_step`` and hands the step over, ``wait`` takes it back and does the part after.
-    The caller touches the world only between ``wait`` and the next ``start``."""
+class _SplitStep:
+    """A step's Python parts in the caller's thread, its ``mj_step`` handed to another thread
+    (``_go`` hands it over, ``_join`` waits for it)."""
 
-    def __init__(self, world: World, lib: ctypes.CDLL, mj_step: int, name: str) -> None:
-        ptr = ctypes.c_void_p
-        lib.cosim_stepper_new.restype = ptr
-        lib.cosim_stepper_new.argtypes = [ptr, ptr, ptr]
-        for fn in (lib.cosim_stepper_serve, lib.cosim_stepper_go, lib.cosim_stepper_wait,
-                   lib.cosim_stepper_stop, lib.cosim_stepper_free):
-            fn.restype, fn.argtypes = None, [ptr]
-        self._world, self._lib = world, lib
-        self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address)
-        if not self._handle:
-            raise MemoryError("native stepper: no memory for its semaphores")
+    def __init__(self, world: World) -> None:
+        self._world = world
         self.running = False
-        # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.
-        self._thread = threading.Thread(target=lib.cosim_stepper_serve, args=(self._handle,),
-                                        name=name, daemon=True)
-        self._thread.start()
+
+    def _go(self) -> None:
+        raise NotImplementedError
+
+    def _join(self) -> None:
+        raise NotImplementedError
+
+    def _try_join(self) -> bool:
+        raise NotImplementedError
+
+    def _check(self) -> None:
+        """Raise the ended step's error, if it had one."""
 
     def start(self, t_us: int) -> None:
         """Begin the world's next step if it ends by ``t_us`` (the caller's event steps on from
@@ -92,81 +95,125 @@ class NativeStepAhead:
         world = self._world
         if world.t_us + world.dt_us > t_us:
             return
+        world.hold_observations()
         world.before_step()
-        self._lib.cosim_stepper_go(self._handle)
+        self._go()
         self.running = True
 
     def wait(self) -> None:
-        """Wait for the running step, if any, and end it."""
+        """Wait for the running step, if any, and end it (its error, if any, is raised here)."""
         if not self.running:
             return
-        self._lib.cosim_stepper_wait(self._handle)
         self.running = False
+        self._join()
+        self._check()
+        self._end()
+
+    def poll(self) -> bool:
+        """End the running step if it has ended, without waiting; whether no step runs now."""
+        if not self.running:
+            return True
+        if not self._try_join():
+            return False
+        self.running = False
+        self._check()
+        self._end()
+        return True
+
+    def _end(self) -> None:
+        self._world.release_observations()
         self._world.after_step()
 
     def close(self) -> None:
-        """Wait for the running step (the world is not stepped on) and end the thread."""
+        """Wait for the running step (the world is not stepped on: its error is not raised) and
+        end the thread."""
         if self.running:
-            self._lib.cosim_stepper_wait(self._handle)
             self.running = False
+            self._join()
+            self._world.release_observations()
+        self._shut_down()
+
+    def _shut_down(self) -> None:
+        raise NotImplementedError
+
+
+class NativeStepAhead(_SplitStep):
+    """Runs each step's ``mj_step`` in a C thread."""
+
+    def __init__(self, world: World, lib: ctypes.CDLL, mj_step: int, name: str) -> None:
+        super().__init__(world)
+        ptr = ctypes.c_void_p
+        lib.cosim_stepper_new.restype = ptr
+        lib.cosim_stepper_new.argtypes = [ptr, ptr, ptr]
+        for fn in (lib.cosim_stepper_serve, lib.cosim_stepper_go, lib.cosim_stepper_wait,
+                   lib.cosim_stepper_stop, lib.cosim_stepper_free):
+            fn.restype, fn.argtypes = None, [ptr]
+        lib.cosim_stepper_try_wait.restype, lib.cosim_stepper_try_wait.argtypes = ctypes.c_int, [ptr]
+        self._lib = lib
+        self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address)
+        if not self._handle:
+            raise MemoryError("native stepper: no memory for its semaphores")
+        # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.
+        self._thread = threading.Thread(target=lib.cosim_stepper_serve, args=(self._handle,),
+                                        name=name, daemon=True)
+        self._thread.start()
+
+    def _go(self) -> None:
+        self._lib.cosim_stepper_go(self._handle)
+
+    def _join(self) -> None:
+        self._lib.cosim_stepper_wait(self._handle)
+
+    def _try_join(self) -> bool:
+        return bool(self._lib.cosim_stepper_try_wait(self._handle))
+
+    def _shut_down(self) -> None:
         self._lib.cosim_stepper_stop(self._handle)
         self._thread.join(timeout=10)
         if not self._thread.is_alive():
             self._lib.cosim_stepper_free(self._handle)
 
 
-class StepAhead:
-    """Runs ``advance(t_us)`` in a thread of its own, one call at a time."""
+class StepAhead(_SplitStep):
+    """Runs each step's ``mj_step`` in a Python thread."""
 
-    def __init__(self, advance: Callable[[int], None], name: str) -> None:
-        self._advance = advance
-        self._go, self._started, self._done = threading.Lock(), threading.Lock(), threading.Lock()
-        for lock in (self._go, self._started, self._done):
+    def __init__(self, world: World, name: str) -> None:
+        super().__init__(world)
+        self._go_lock, self._done = threading.Lock(), threading.Lock()
+        for lock in (self._go_lock, self._done):
             lock.acquire()  # each is released by one side and taken by the other
-        self._target = 0
         self._error: BaseException | None = None
         self._closing = False
-        self.running = False
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
-    def start(self, t_us: int) -> None:
-        """Begin ``advance(t_us)``; returns once it holds the GIL, so that it starts now rather than
-        when the caller next lets go of the GIL (it lets go inside ``mj_step``)."""
-        if self.running:
-            raise RuntimeError("a step ahead is running already")
-        self._target = t_us
-        self.running = True
-        self._go.release()
-        self._started.acquire()
+    def _go(self) -> None:
+        self._go_lock.release()
 
-    def wait(self) -> None:
-        """Wait for the running call, if any; its exception is raised here."""
-        if not self.running:
-            return
+    def _join(self) -> None:
         self._done.acquire()
-        self.running = False
+
+    def _try_join(self) -> bool:
+        return self._done.acquire(blocking=False)
+
+    def _check(self) -> None:
         error, self._error = self._error, None
         if error is not None:
             raise error
 
-    def close(self) -> None:
-        """Wait for the running call (its error is not raised again) and end the thread."""
-        if self.running:
-            self._done.acquire()
-            self.running = False
+    def _shut_down(self) -> None:
         self._closing = True
-        self._go.release()
+        self._go_lock.release()
         self._thread.join(timeout=10)
 
     def _loop(self) -> None:
+        world = self._world
         while True:
-            self._go.acquire()
+            self._go_lock.acquire()
             if self._closing:
                 return
-            self._started.release()
             try:
-                self._advance(self._target)
+                mujoco.mj_step(world.model, world.data)
             except BaseException as exc:  # handed to the caller's thread by ``wait``
                 self._error = exc
             self._done.release()

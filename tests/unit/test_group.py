@@ -46,10 +46,27 @@ class Breaker(Pinger):
 
 
 class Ahead(Pinger):
-    """A pinger that records the bounds up to which the group lets it work ahead."""
+    """A pinger that records the bounds up to which the group lets it work ahead, each with how
+    many messages it had accepted by then."""
+
+    def accept(self, msg: Message) -> None:
+        self.__dict__.setdefault("accepted", []).append(msg.t_us)
+        super().accept(msg)
 
     def work_ahead(self, until_us: int) -> None:
-        self.__dict__.setdefault("ahead", []).append((self.now, until_us))
+        self.__dict__.setdefault("ahead", []).append((until_us, len(self.__dict__.get("accepted", []))))
+
+
+class AheadAnnouncing(Ahead):
+    """A pinger working ahead that promises, on every plane, to send nothing before its next tick,
+    and nothing outside its group (true when its peers are members)."""
+
+    def external_horizon_us(self) -> int | None:
+        return NEVER_US
+
+    def next_send_us(self, plane: str, now_us: int) -> int:
+        ticked = sum(1 for entry in self.log if entry[3] == "tick")
+        return max(now_us, self.ticks[ticked]) if ticked < len(self.ticks) else NEVER_US
 
 
 def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
@@ -160,13 +177,33 @@ def test_a_message_from_outside_bounds_the_horizon_until_it_is_processed(tmp_pat
     assert member.log == [(7 * W, "d", 0, "ping")]
 
 
-def test_a_member_may_work_ahead_up_to_the_end_of_its_base_window(tmp_path: Path) -> None:
-    # After each of a member's events, the group offers it the time until which no message from
-    # another member can reach it: the end of the base window of that event.
+def test_a_member_may_work_ahead_up_to_the_end_of_the_base_window_after_every_event(tmp_path: Path) -> None:
+    # After each event of any member, the group offers every member the time until which no
+    # message can reach it: with no promise from its peers, the end of that event's base window.
     _, alone, _ = run(tmp_path / "alone", [], kind=Ahead)
     _, grouped, _ = run(tmp_path / "grouped", ["a", "b", "c"], kind=Ahead)
+    times = sorted(entry[0] for n in "abc" for entry in grouped[n].log)  # the group's events
     for n in "abc":
-        ahead = grouped[n].__dict__["ahead"]
-        assert ahead and all(until == (now // W + 1) * W for now, until in ahead), n
+        assert [until for until, _ in grouped[n].__dict__["ahead"]] == [(t // W + 1) * W for t in times], n
         assert grouped[n].log == alone[n].log, n
     assert all("ahead" not in f.__dict__ for f in alone.values())  # served alone: never offered
+
+
+def test_peers_promising_their_next_send_let_a_member_work_further_ahead(tmp_path: Path) -> None:
+    # a, b, c talk only to each other, so the group is given long windows.
+    peers = {"a": ["b", "c"], "b": ["a", "c"], "c": ["a", "b"], "d": []}
+    _, alone, _ = run(tmp_path / "alone", [], peers=peers, kind=Ahead)
+    _, grouped, _ = run(tmp_path / "grouped", ["a", "b", "c"], peers=peers, kind=AheadAnnouncing)
+    times = sorted(entry[0] for n in "abc" for entry in grouped[n].log)
+    beyond = 0
+    for n in "abc":
+        member = grouped[n]
+        assert member.log == alone[n].log, n
+        offers = member.__dict__["ahead"]
+        beyond += sum(until > (t // W + 1) * W for (until, _), t in zip(offers, times, strict=True))
+        # Every message delivered before an offer's bound had arrived when it was made.
+        received = sorted(entry[0] for entry in member.log if entry[3] != "tick")
+        for until, accepted in offers:
+            assert sum(t < until for t in member.__dict__["accepted"][:accepted]) == \
+                sum(t < until for t in received), (n, until)
+    assert beyond > 0  # the promises reached past the base window

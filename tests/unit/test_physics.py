@@ -3,7 +3,6 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import mujoco
@@ -19,7 +18,7 @@ from domain.world import World, spawn_plan
 from fabric import native
 from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
-from services.physics.stepper import LIBRARY, NativeStepAhead, StepAhead, step_ahead
+from services.physics.stepper import LIBRARY, NativeStepAhead, StepAhead, Stepper, step_ahead
 
 # UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]
@@ -216,66 +215,85 @@ def test_parked_parts_sleep_and_change_nothing() -> None:
     assert on.data.nv_awake < on.model.nv
 
 
-def test_step_ahead_runs_each_call_in_its_thread_and_hands_back_its_error() -> None:
-    calls: list[tuple[int, str]] = []
-
-    def advance(t_us: int) -> None:
-        calls.append((t_us, threading.current_thread().name))
-        if t_us < 0:
-            raise ValueError("no such time")
-
-    stepper = StepAhead(advance, "physics-step")
-    stepper.wait()  # nothing running: returns at once
-    for t in (1000, 2000):
-        stepper.start(t)
-        assert stepper.running
-        with pytest.raises(RuntimeError, match="running already"):
-            stepper.start(t)
-        stepper.wait()
-        assert not stepper.running
-    stepper.start(-1)
-    with pytest.raises(ValueError, match="no such time"):
-        stepper.wait()
-    stepper.wait()  # the error is raised once
-    stepper.start(3000)
-    stepper.close()  # waits for the running call
-    assert calls == [(1000, "physics-step"), (2000, "physics-step"), (-1, "physics-step"),
-                     (3000, "physics-step")]
-    assert not stepper._thread.is_alive()
+def make_stepper(kind: str, world: World) -> Stepper:
+    if kind == "python":
+        return StepAhead(world, "physics-step")
+    if native.library(LIBRARY) is None:
+        pytest.skip("no fresh native build here (make native)")
+    stepper = step_ahead(world, "physics-step")
+    assert isinstance(stepper, NativeStepAhead)
+    return stepper
 
 
-class NativeSteppedWorld(World):
-    """A world whose every ``mj_step`` runs in the native stepper's C thread."""
+class SteppedWorld(World):
+    """A world whose every ``mj_step`` runs in a stepper's thread: every other step is taken back
+    by polling, and while each step runs the observations must show the state at its start."""
 
-    def __init__(self, sc: Any) -> None:
+    def __init__(self, sc: Any, kind: str) -> None:
         super().__init__(sc)
-        self.stepper = step_ahead(self, "physics-step")
+        self.stepper = make_stepper(kind, self)
 
     def advance_to(self, t_us: int) -> None:
         while self.t_us + self.dt_us <= t_us:
+            seen = [(self.joint_state(i), self.objects(i)) for i in range(len(self.cells))]
             self.stepper.start(t_us)
-            self.stepper.wait()
+            assert [(self.joint_state(i), self.objects(i)) for i in range(len(self.cells))] == seen
+            if self._steps % 2:
+                while not self.stepper.poll():
+                    pass
+            else:
+                self.stepper.wait()
+            assert not self.stepper.running
 
 
-def test_native_stepper_steps_the_world_exactly_as_advance_to() -> None:
-    """Picks and places with the steps' mj_step in the C thread: the same tasks, the same state
-    to the bit."""
-    if native.library(LIBRARY) is None:
-        pytest.skip("no fresh native build here (make native)")
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_a_stepper_steps_the_world_exactly_as_advance_to(kind: str) -> None:
+    """Picks and places with the steps' mj_step in the stepper's thread: the same tasks, the same
+    state to the bit; observations held while a step runs."""
     sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {**VARIED, "object_period_s": 3.0}})
-    plain, threaded = World(sc), NativeSteppedWorld(sc)
+    plain, threaded = World(sc), SteppedWorld(sc, kind)
     plain_result, threaded_result = run_ideal(sc, world=plain), run_ideal(sc, world=threaded)
-    stepper = threaded.stepper
-    assert isinstance(stepper, NativeStepAhead)
     placed = [t for t in plain_result.tasks if t["outcome"] == "placed"]
     assert len(placed) >= 2  # the steps covered suction seals and releases
     assert threaded_result.tasks == plain_result.tasks
     assert threaded.t_us == plain.t_us
     for name in ("qpos", "qvel", "act", "ctrl", "eq_active"):
         assert getattr(threaded.data, name).tobytes() == getattr(plain.data, name).tobytes(), name
+    stepper = threaded.stepper
     stepper.start(threaded.t_us + threaded.dt_us)
     stepper.close()  # waits for the running step
-    assert not stepper._thread.is_alive()
+    assert not stepper._thread.is_alive()  # type: ignore[attr-defined]
+
+
+def test_observations_during_a_step_show_its_start_before_the_belt_drive() -> None:
+    sc = parse_scenario({"loops": 1, "duration_s": 2})
+    world = World(sc)
+    world.spawn(0)
+    world.advance_to(200_000)  # the part rides the belt
+    before = world.objects(0)
+    assert before and before[0]["v"][0] > 0
+    world.data.qvel[:] = 0.0  # so that the belt drive at the step's start changes the velocities
+    before = world.objects(0)
+    stepper = make_stepper("python", world)
+    stepper.start(world.t_us + world.dt_us)
+    assert world.objects(0) == before  # velocities as before the belt drive, positions as before the step
+    stepper.wait()
+    after = world.objects(0)
+    assert after[0]["v"][0] == pytest.approx(sc.cell.belt_speed_m_s) and after[0]["p"] != before[0]["p"]
+    stepper.close()
+
+
+def test_ended_tasks_are_taken_up_to_a_time() -> None:
+    sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {"object_period_s": 3.0}})
+    world = World(sc)
+    run_ideal(sc, world=world)
+    rows = [t.row() for t in world.tasks]  # every task has ended: unfinished ones at the run's end
+    ends = sorted({r["end_us"] for r in rows})
+    assert len(ends) >= 3
+    taken = world.take_ended(ends[1])
+    assert taken and taken == [r for r in rows if r["end_us"] <= ends[1]]
+    assert world.take_ended(ends[1]) == []  # taken once
+    assert world.take_ended(ends[-1]) == [r for r in rows if r["end_us"] > ends[1]]
 
 
 def test_controller_places_every_part_with_ideal_poses() -> None:

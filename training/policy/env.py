@@ -137,7 +137,7 @@ class PickLoopEnv(gym.Env):
         dt_s = self.period_us / 1e6
         cost = qos.pdp * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
         self.pdp_bar += (qos.pdp - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
-        ended = self.world.take_ended()
+        ended = self.world.take_ended(self.world.t_us)
         placed = sum(1 for t in ended if t["outcome"] == "placed")
         missed = sum(1 for t in ended if t["outcome"] == "missed")
         dropped = sum(1 for t in ended if t["outcome"] == "dropped")
