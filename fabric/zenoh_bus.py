@@ -30,6 +30,9 @@ def session_config(mode: str, endpoint: str) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # With no multicast scouting there is nothing to wait for: the default delay (500 ms) made
+    # opening the router half a second of every run.
+    conf.insert_json5("scouting/delay", "0")
     # Zenoh would put every message over 3 kB into a 16 MiB shared-memory pool per session, and a
     # router keeps the pools of every client it ever met mapped: a long-lived coordinator grew by
     # two segments (~20 MiB, 2 descriptors) per run. Loopback TCP carries the frames instead.
