@@ -40,6 +40,8 @@ ON_BELT_SLACK_M = 0.004  # a part's centre this close above resting height rides
 GRIPPED_CONTYPE = 4  # a held part stops colliding with the cup and arm (the weld holds it)
 CHECK_PERIOD_US = 10_000  # which parts ride the belt, and task outcomes, are checked this often
 _OFFSETS = np.arange(3)
+# What observations read of one step (``World.hold_observations``): qpos, qvel, each cell's view.
+Snapshot = tuple[np.ndarray, np.ndarray, list[tuple[bool, tuple[tuple[int, int, int, bool], ...]]]]
 # Sleep policies of a kinematic tree (mjtSleepPolicy): see ``World._may_sleep``.
 SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
 SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
@@ -123,6 +125,9 @@ class CellState:
     gripped: int | None = None  # slot held by the cup
     tasks_spawned: int = 0
     skipped_spawns: int = 0
+    # What observations read of the parts in play, until they change (``World._observed``):
+    # (whether the cup holds a part, ((task id, qpos address, dof address, held), ...) by task id).
+    view: tuple[bool, tuple[tuple[int, int, int, bool], ...]] | None = None
 
 
 class CellView:
@@ -238,10 +243,11 @@ class World:
         self._check_steps = max(1, CHECK_PERIOD_US // self.dt_us)
         self._steps = 0
         self._vacuum: list[CellState] = []
-        # What observations (``joint_state``, ``objects``) read: the live state, or a copy of it
-        # held while the next step runs in another thread (``hold_observations``).
-        self._held = (np.empty_like(self.data.qpos), np.empty_like(self.data.qvel))
-        self._seen_qpos, self._seen_qvel = self.data.qpos, self.data.qvel
+        # What observations (``joint_state``, ``objects``) read: None for the live state, or a
+        # snapshot (qpos, qvel, each cell's view) of the state at a step's start, taken while
+        # that step runs in another thread; the snapshots still to be observed, by time.
+        self._seen: Snapshot | None = None
+        self._held: dict[int, Snapshot] = {}
 
     # ---- stepping ---------------------------------------------------------------------------
     def advance_to(self, t_us: int) -> None:
@@ -262,15 +268,69 @@ class World:
 
     def hold_observations(self) -> None:
         """Until ``release_observations``, observations show the state as it is now, while a step
-        runs elsewhere (called before ``before_step``, whose belt drive sets velocities)."""
-        qpos, qvel = self._held
-        np.copyto(qpos, self.data.qpos)
-        np.copyto(qvel, self.data.qvel)
-        self._seen_qpos, self._seen_qvel = qpos, qvel
+        runs elsewhere (called before ``before_step``, whose belt drive sets velocities); it is
+        kept for ``observe_at`` any time in this step, also once later steps have run."""
+        snap = (self.data.qpos.copy(), self.data.qvel.copy(), [self._observed(c) for c in self.cells])
+        self._held[self.t_us] = self._seen = snap
+
+    def hold_ahead(self, steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """For ``steps`` steps handed over at once (``steps_alone``), after ``hold_observations``
+        and ``before_step``: the rows (steps - 1, nq) and (steps - 1, nv) into which the stepping
+        thread copies qpos and qvel at the start of each step after the first (before its belt
+        drive), held for the observers of those steps. The parts in play do not change within."""
+        qpos = np.empty((steps - 1, self.model.nq))
+        qvel = np.empty((steps - 1, self.model.nv))
+        views = self._held[self.t_us][2]
+        for k in range(1, steps):
+            self._held[self.t_us + k * self.dt_us] = (qpos[k - 1], qvel[k - 1], views)
+        return qpos, qvel
+
+    def steps_alone(self) -> int:
+        """How many steps from now may run with nothing in Python between them: one while a cup
+        waits to seal on a part (checked after every step), else up to the next task check, which
+        also picks the parts the belt drives (``belt_drive``)."""
+        if self._vacuum:
+            return 1
+        return self._check_steps - self._steps % self._check_steps
+
+    def belt_drive(self) -> tuple[np.ndarray, float]:
+        """What ``before_step`` sets (after it has run): dof addresses of the parts on a belt
+        (int64), whose velocity becomes the belt speed along x and 0 across, and that speed."""
+        on_belt = self._on_belt
+        assert on_belt is not None, "belt_drive before before_step"
+        return np.ascontiguousarray(on_belt, dtype=np.int64), float(self.sc.cell.belt_speed_m_s)
+
+    def after_steps(self, steps: int) -> None:
+        """What ``steps`` steps handed over at once end with: the clock, and the last step's
+        seals and task checks (the ones before it had none: ``steps_alone``)."""
+        self.t_us += (steps - 1) * self.dt_us
+        self._steps += steps - 1
+        self.after_step()
 
     def release_observations(self) -> None:
         """Observations show the live state again (the step that ran elsewhere has ended)."""
-        self._seen_qpos, self._seen_qvel = self.data.qpos, self.data.qvel
+        self._seen = None
+
+    def observe_at(self, t_us: int) -> None:
+        """Observations show the state at ``t_us``: the held one of the step it falls in, or the
+        live one if the world is at that step. Observations come in time order, so the snapshots
+        of earlier steps are dropped."""
+        start = t_us - t_us % self.dt_us
+        held = self._held
+        for k in [k for k in held if k < start]:
+            del held[k]
+        snap = held.get(start)
+        if snap is None and start != self.t_us:
+            raise RuntimeError(f"world: no state held for an observation at {t_us} us (the world is at {self.t_us} us)")
+        self._seen = snap
+
+    def _observed(self, c: CellState) -> tuple[bool, tuple[tuple[int, int, int, bool], ...]]:
+        view = c.view
+        if view is None:
+            view = c.view = (c.gripped is not None, tuple(
+                (task.task_id, c.obj_qadr[slot], c.obj_vadr[slot], c.gripped == slot)
+                for slot, task in sorted(c.active.items(), key=lambda kv: kv[1].task_id)))
+        return view
 
     def after_step(self) -> None:
         """What a step ends with, after ``mj_step``: the clock, suction seals and task outcomes."""
@@ -298,10 +358,12 @@ class World:
             )
         return self._loose
 
-    def _changed(self) -> None:
-        """A part spawned, ended, was gripped or released: rebuild the per-step index."""
+    def _changed(self, c: CellState) -> None:
+        """A part of ``c`` spawned, ended, was gripped or released: rebuild the per-step index and
+        the cell's view."""
         self._loose = None
         self._on_belt = None
+        c.view = None
 
     def _parts_on_belts(self) -> np.ndarray:
         """Dof addresses of the loose parts resting on their belt."""
@@ -345,7 +407,7 @@ class World:
         metrics.TASKS.labels(outcome).inc()
         self._park(c, slot)
         c.free_slots.append(slot)
-        self._changed()
+        self._changed(c)
 
     def _park(self, c: CellState, slot: int) -> None:
         m, d = self.model, self.data
@@ -400,7 +462,7 @@ class World:
         c.tasks_spawned += 1
         c.active[slot] = task
         self.tasks.append(task)
-        self._changed()
+        self._changed(c)
         return task
 
     def _shape(self, c: CellState, slot: int, size: float, mass: float) -> None:
@@ -493,7 +555,7 @@ class World:
         self._collides(c, slot, GRIPPED_CONTYPE, 1)
         c.gripped = slot
         self._vacuum = [x for x in self._vacuum if x is not c]
-        self._changed()
+        self._changed(c)
 
     def _release(self, c: CellState) -> None:
         slot = c.gripped
@@ -501,13 +563,14 @@ class World:
         self.data.eq_active[c.eq[slot]] = 0
         self._collides(c, slot, 1, 1)
         c.gripped = None
-        self._changed()
+        self._changed(c)
 
     # ---- observation ------------------------------------------------------------------------
     def joint_state(self, cell: int) -> dict[str, Any]:
-        c = self.cells[cell]
-        return {"q": [float(v) for v in self._seen_qpos[c.qadr]],
-                "gripped": c.gripped is not None}
+        c, seen = self.cells[cell], self._seen
+        if seen is None:
+            return {"q": [float(v) for v in self.data.qpos[c.qadr]], "gripped": self._observed(c)[0]}
+        return {"q": [float(v) for v in seen[0][c.qadr]], "gripped": seen[2][cell][0]}
 
     def tool_position(self, cell: int) -> np.ndarray:
         """Cup lip centre of ``cell`` (cell frame), as of the last step."""
@@ -516,14 +579,12 @@ class World:
 
     def objects(self, cell: int) -> list[dict[str, Any]]:
         """Ground truth of the parts in play in ``cell`` (cell frame), by task id."""
-        c = self.cells[cell]
-        out = []
-        for slot, task in sorted(c.active.items(), key=lambda kv: kv[1].task_id):
-            a, va = c.obj_qadr[slot], c.obj_vadr[slot]
-            out.append({"task_id": task.task_id, "p": [float(v) for v in self._seen_qpos[a:a + 3] - c.origin],
-                        "v": [float(v) for v in self._seen_qvel[va:va + 3]],
-                        "gripped": c.gripped == slot})
-        return out
+        c, seen = self.cells[cell], self._seen
+        qpos, qvel, view = (self.data.qpos, self.data.qvel, self._observed(c)) if seen is None else \
+            (seen[0], seen[1], seen[2][cell])
+        return [{"task_id": task_id, "p": [float(v) for v in qpos[a:a + 3] - c.origin],
+                 "v": [float(v) for v in qvel[va:va + 3]], "gripped": held}
+                for task_id, a, va, held in view[1]]
 
     def render(self, cell: int, width: int, height: int, camera: str = "camera",
                depth: bool = True) -> tuple[np.ndarray, np.ndarray | None]:

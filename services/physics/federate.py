@@ -68,28 +68,26 @@ class PhysicsFederate(Federate):
 
     # ---- stepping ahead -----------------------------------------------------------------------
     def work_ahead(self, until_us: int) -> None:
-        """Step the world in the background, one step at a time, up to the next event that
-        changes it (at most ``until_us``: every input before then is here already). A step holds
-        the observations of its start (``World.hold_observations``), which is the state the events
-        before its end observe, so it may start before they run; it ends (``poll``) once they
-        have. So the steps and what the events see are the same. ``mj_step`` releases the GIL,
-        so it runs beside the group's events on the second core."""
+        """Step the world in the background up to the next event that changes it (at most
+        ``until_us``: every input before then is here already), several steps a handover where
+        nothing in Python has to run between them (``World.steps_alone``). The events that only
+        observe read the state at their time: each step holds the observations of its start
+        (``World.hold_observations``), kept until the events of that step have observed them, so
+        the steps need not wait for those events, and what they see is the same. ``mj_step``
+        releases the GIL, so it runs beside the group's events on the second core."""
         self._until = until_us
         stepper = self._stepper
         if stepper is None:
             stepper = self._stepper = step_ahead(self.world, f"{self.name}-step")
-        world = self.world
-        if stepper.running:
-            nxt = self.next_event_key()
-            if (nxt is not None and nxt[0] < world.t_us + self.step_us) or not stepper.poll():
-                return
-        changes = self._changes
+        if stepper.running and not stepper.poll():
+            return
+        changes, world = self._changes, self.world
         target = min(changes[0][0], until_us) if changes else until_us
         if world.t_us + self.step_us <= target:
-            stepper.start(target)
+            stepper.start(target, world.steps_alone())
 
     def _settle(self) -> None:
-        """Wait for the step running ahead, if any (its error is raised here)."""
+        """Wait for the steps running ahead, if any (their error is raised here)."""
         if self._stepper is not None:
             self._stepper.wait()
 
@@ -101,28 +99,33 @@ class PhysicsFederate(Federate):
         if not observes:
             heapq.heappop(changes)
         stepper, world = self._stepper, self.world
-        if stepper is not None:  # in a group, stepping ahead
-            if stepper.running:
-                if world.t_us + self.step_us <= t_us:
-                    stepper.wait()
-                elif not observes:
-                    raise RuntimeError(f"{self.name}: a step ran ahead past a change to the world at {t_us} us")
-            if observes and not stepper.running:
-                # The next step may run while this event observes the state at its time.
-                world.advance_to(t_us)
+        if stepper is not None and stepper.running:  # in a group, stepping ahead
+            if t_us >= stepper.end_us:
+                stepper.wait()
+            elif observes:
+                stepper.reach(t_us)
+            else:
+                raise RuntimeError(f"{self.name}: a step ran ahead past a change to the world at {t_us} us")
+        if not observes and world.t_us > t_us:
+            raise RuntimeError(f"{self.name}: the world stepped past a change to it at {t_us} us")
+        if stepper is None or not stepper.running:
+            # Every event begins with the world at its time (stepped here if it is behind).
+            world.advance_to(t_us)
+            if observes and stepper is not None:
+                # The next steps may run while this event observes the state at its time.
                 self.work_ahead(self._until)
-        if world.t_us > t_us:
-            raise RuntimeError(f"{self.name}: the world stepped to {world.t_us} us past an event at {t_us} us")
+        if observes:
+            world.observe_at(t_us)
+        else:
+            world.release_observations()
         super().process_next()
 
     # ---- events -------------------------------------------------------------------------------
     def _spawn(self, cell: int, part: dict[str, float]) -> None:
-        self.world.advance_to(self.now)
         self.world.spawn(cell, **part)
 
     def _frame(self, loop: int) -> None:
         sc = self.scenario
-        self.world.advance_to(self.now)
         deliver = self.now + sc.camera.readout_latency_us
         if loop < sc.detailed_loops:
             rgb, depth = self.world.render(loop, sc.camera.width_px, sc.camera.height_px)
@@ -148,7 +151,6 @@ class PhysicsFederate(Federate):
 
     def _publish_states(self) -> None:
         sc = self.scenario
-        self.world.advance_to(self.now)
         deliver = self.now + sc.robot.state_latency_us
         for i in self.detailed:
             self.send(f"robot-{i}", "sense", "joint_state", deliver,
@@ -176,7 +178,6 @@ class PhysicsFederate(Federate):
     def on_message(self, msg: Message) -> None:
         if msg.kind != "command":
             raise self.unexpected(msg)
-        self.world.advance_to(self.now)
         for cmd in msg.body["commands"]:
             self.world.command(int(cmd["loop"]), cmd["q"], bool(cmd["suction"]))
 
@@ -209,7 +210,9 @@ class PhysicsFederate(Federate):
 
     def finish(self, reason: str) -> dict[str, Any]:
         self._settle()
-        self.world.advance_to(min(self.now, self.scenario.duration_us))
+        # To the end of the last window, which no step ahead passes: the same end however far
+        # the steps ahead had got.
+        self.world.advance_to(min(max(self.now, self.window_end), self.scenario.duration_us))
         self._record_tasks(self.world.finish())
         return {"tasks": self.tasks_ended, "placed": self.tasks_placed,
                 "frames_rendered": self.frames_sent}

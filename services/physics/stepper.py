@@ -1,12 +1,15 @@
 """A thread that steps the world ahead while the group's thread processes the other members' events.
 
-``mj_step`` releases the GIL, so a step in another thread runs on the second core. The work is
-handed over once a simulated millisecond at 32 loops. Either stepper runs only ``mj_step`` in its
-thread: the step's Python parts (the conveyor drive before it, seals and task checks after) run in
-the caller's thread, in ``start`` and ``wait``, and between the two the world's observations show
-the state as of ``start`` (``World.hold_observations``), so the caller may read them while the
-step runs. ``NativeStepAhead`` (the default where the native build is fresh) runs ``mj_step`` in a
-thread of C code that never takes the GIL (``native_stepper.c``): a handover is a semaphore post
+``mj_step`` releases the GIL, so a step in another thread runs on the second core. Either
+stepper runs only ``mj_step`` in its thread: the step's Python parts (the conveyor drive before it,
+seals and task checks after) run in the caller's thread, in ``start`` and ``wait`` (or ``poll``),
+and between the two the world's observations show the state as of ``start``
+(``World.hold_observations``), so the caller may read them while the step runs. The native
+stepper takes several steps a handover where nothing in Python has to run between them
+(``World.steps_alone``), doing their belt drive and holding each one's starting state itself.
+
+``NativeStepAhead`` (the default where the native build is fresh) runs ``mj_step`` in a thread of
+C code that never takes the GIL (``native_stepper.c``): a handover is a semaphore post
 and a wait, with no thread waiting for the GIL held by the other. ``StepAhead`` is the pure-Python
 way: a Python thread handed the step with two locks used as binary semaphores (``acquire`` waits
 in C with the GIL released and a ``release`` from the other thread wakes it); that thread must
@@ -23,6 +26,7 @@ import threading
 from typing import Protocol
 
 import mujoco
+import numpy as np
 
 from domain.world import World
 from fabric import native
@@ -33,14 +37,18 @@ LIBRARY = "cosim5g_stepper"
 
 class Stepper(Protocol):
     """What the physics federate asks of a step-ahead thread: ``start`` begins the world's next
-    step if it ends by ``t_us``; until ``wait`` the caller must not change the world, and reads
-    its observations as of ``start``."""
+    steps, none ending after ``t_us``; until ``wait`` or ``poll`` ends them the caller must not
+    change the world, and observes the state of any time before ``end_us`` once ``reach`` has
+    returned for it (``World.observe_at``)."""
 
     running: bool
+    end_us: int
 
-    def start(self, t_us: int) -> None: ...
+    def start(self, t_us: int, steps: int = 1) -> None: ...
 
     def wait(self) -> None: ...
+
+    def reach(self, t_us: int) -> None: ...
 
     def poll(self) -> bool: ...
 
@@ -69,13 +77,17 @@ def _mj_step_address() -> int | None:
 
 class _SplitStep:
     """A step's Python parts in the caller's thread, its ``mj_step`` handed to another thread
-    (``_go`` hands it over, ``_join`` waits for it)."""
+    (``_go`` hands steps over, ``_join`` waits for them)."""
+
+    max_steps = 1  # steps one handover may hold
 
     def __init__(self, world: World) -> None:
         self._world = world
         self.running = False
+        self.steps = 0  # of the running handover
+        self.end_us = 0  # when the running handover's last step ends
 
-    def _go(self) -> None:
+    def _go(self, steps: int) -> None:
         raise NotImplementedError
 
     def _join(self) -> None:
@@ -87,21 +99,27 @@ class _SplitStep:
     def _check(self) -> None:
         """Raise the ended step's error, if it had one."""
 
-    def start(self, t_us: int) -> None:
-        """Begin the world's next step if it ends by ``t_us`` (the caller's event steps on from
-        there)."""
+    def start(self, t_us: int, steps: int = 1) -> None:
+        """Begin the world's next steps, as many as ``steps`` and ``max_steps`` allow with none
+        ending after ``t_us`` (none if the next one would); more than one only as the world
+        allows them with nothing in Python between them (``World.steps_alone``)."""
         if self.running:
             raise RuntimeError("a step ahead is running already")
         world = self._world
-        if world.t_us + world.dt_us > t_us:
+        steps = min(steps, self.max_steps, (t_us - world.t_us) // world.dt_us)
+        if steps < 1:
             return
         world.hold_observations()
         world.before_step()
-        self._go()
-        self.running = True
+        self._go(steps)
+        self.running, self.steps, self.end_us = True, steps, world.t_us + steps * world.dt_us
+
+    def reach(self, t_us: int) -> None:
+        """Wait until the running handover holds the state at ``t_us`` (before ``end_us``): the
+        step in which it falls has begun."""
 
     def wait(self) -> None:
-        """Wait for the running step, if any, and end it (its error, if any, is raised here)."""
+        """Wait for the running steps, if any, and end them (their error is raised here)."""
         if not self.running:
             return
         self.running = False
@@ -110,7 +128,7 @@ class _SplitStep:
         self._end()
 
     def poll(self) -> bool:
-        """End the running step if it has ended, without waiting; whether no step runs now."""
+        """End the running steps if they have ended, without waiting; whether none runs now."""
         if not self.running:
             return True
         if not self._try_join():
@@ -122,11 +140,11 @@ class _SplitStep:
 
     def _end(self) -> None:
         self._world.release_observations()
-        self._world.after_step()
+        self._world.after_steps(self.steps)
 
     def close(self) -> None:
-        """Wait for the running step (the world is not stepped on: its error is not raised) and
-        end the thread."""
+        """Wait for the running steps (the world is not stepped on: their error is not raised)
+        and end the thread."""
         if self.running:
             self.running = False
             self._join()
@@ -138,34 +156,62 @@ class _SplitStep:
 
 
 class NativeStepAhead(_SplitStep):
-    """Runs each step's ``mj_step`` in a C thread."""
+    """Runs the steps' ``mj_step`` in a C thread, several steps a handover: between them the
+    thread applies the conveyor drive and copies the state for the steps' observers."""
+
+    max_steps = 64
 
     def __init__(self, world: World, lib: ctypes.CDLL, mj_step: int, name: str) -> None:
         super().__init__(world)
-        ptr = ctypes.c_void_p
+        ptr, long = ctypes.c_void_p, ctypes.c_long
         lib.cosim_stepper_new.restype = ptr
-        lib.cosim_stepper_new.argtypes = [ptr, ptr, ptr]
-        for fn in (lib.cosim_stepper_serve, lib.cosim_stepper_go, lib.cosim_stepper_wait,
-                   lib.cosim_stepper_stop, lib.cosim_stepper_free):
+        lib.cosim_stepper_new.argtypes = [ptr, ptr, ptr, ptr, ptr, long, long]
+        lib.cosim_stepper_go.restype = None
+        lib.cosim_stepper_go.argtypes = [ptr, ctypes.c_int, ptr, long, ctypes.c_double, ptr, ptr]
+        lib.cosim_stepper_wait_steps.restype = None
+        lib.cosim_stepper_wait_steps.argtypes = [ptr, ctypes.c_int]
+        for fn in (lib.cosim_stepper_serve, lib.cosim_stepper_wait, lib.cosim_stepper_stop,
+                   lib.cosim_stepper_free):
             fn.restype, fn.argtypes = None, [ptr]
         lib.cosim_stepper_try_wait.restype, lib.cosim_stepper_try_wait.argtypes = ctypes.c_int, [ptr]
         self._lib = lib
-        self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address)
+        qpos, qvel = world.data.qpos, world.data.qvel
+        self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address,
+                                             qpos.ctypes.data, qvel.ctypes.data, qpos.size, qvel.size)
         if not self._handle:
             raise MemoryError("native stepper: no memory for its semaphores")
+        self._handed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # alive while running
         # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.
         self._thread = threading.Thread(target=lib.cosim_stepper_serve, args=(self._handle,),
                                         name=name, daemon=True)
         self._thread.start()
 
-    def _go(self) -> None:
-        self._lib.cosim_stepper_go(self._handle)
+    def _go(self, steps: int) -> None:
+        if steps == 1:
+            self._lib.cosim_stepper_go(self._handle, 1, None, 0, 0.0, None, None)
+            return
+        world = self._world
+        belt, speed = world.belt_drive()
+        held_qpos, held_qvel = world.hold_ahead(steps)
+        self._handed = (belt, held_qpos, held_qvel)
+        self._lib.cosim_stepper_go(self._handle, steps, belt.ctypes.data, belt.size, speed,
+                                   held_qpos.ctypes.data, held_qvel.ctypes.data)
+
+    def reach(self, t_us: int) -> None:
+        world = self._world
+        k = (t_us - world.t_us) // world.dt_us  # steps of this handover before the one at t_us
+        if k >= 1:
+            self._lib.cosim_stepper_wait_steps(self._handle, k)
 
     def _join(self) -> None:
         self._lib.cosim_stepper_wait(self._handle)
+        self._handed = None
 
     def _try_join(self) -> bool:
-        return bool(self._lib.cosim_stepper_try_wait(self._handle))
+        if not self._lib.cosim_stepper_try_wait(self._handle):
+            return False
+        self._handed = None
+        return True
 
     def _shut_down(self) -> None:
         self._lib.cosim_stepper_stop(self._handle)
@@ -187,7 +233,7 @@ class StepAhead(_SplitStep):
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
-    def _go(self) -> None:
+    def _go(self, steps: int) -> None:
         self._go_lock.release()
 
     def _join(self) -> None:

@@ -14,7 +14,7 @@ from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
 from domain.controller import PickController
 from domain.kinematics import ArmKinematics
 from domain.scene import build_mjcf, object_pool_size
-from domain.world import World, spawn_plan
+from domain.world import CHECK_PERIOD_US, World, spawn_plan
 from fabric import native
 from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
@@ -226,19 +226,22 @@ def make_stepper(kind: str, world: World) -> Stepper:
 
 
 class SteppedWorld(World):
-    """A world whose every ``mj_step`` runs in a stepper's thread: every other step is taken back
-    by polling, and while each step runs the observations must show the state at its start."""
+    """A world whose every ``mj_step`` runs in a stepper's thread, as many steps a handover as
+    the world allows (``steps_alone``; the Python stepper takes one): every other handover is
+    taken back by polling, and while one runs the observations must show the state at its start."""
 
     def __init__(self, sc: Any, kind: str) -> None:
         super().__init__(sc)
         self.stepper = make_stepper(kind, self)
+        self.handovers: list[int] = []
 
     def advance_to(self, t_us: int) -> None:
         while self.t_us + self.dt_us <= t_us:
             seen = [(self.joint_state(i), self.objects(i)) for i in range(len(self.cells))]
-            self.stepper.start(t_us)
+            self.stepper.start(t_us, self.steps_alone())
+            self.handovers.append(self.stepper.end_us - self.t_us)
             assert [(self.joint_state(i), self.objects(i)) for i in range(len(self.cells))] == seen
-            if self._steps % 2:
+            if len(self.handovers) % 2:
                 while not self.stepper.poll():
                     pass
             else:
@@ -259,10 +262,45 @@ def test_a_stepper_steps_the_world_exactly_as_advance_to(kind: str) -> None:
     assert threaded.t_us == plain.t_us
     for name in ("qpos", "qvel", "act", "ctrl", "eq_active"):
         assert getattr(threaded.data, name).tobytes() == getattr(plain.data, name).tobytes(), name
+    if kind == "native":  # several steps a handover where no cup waited to seal
+        assert min(threaded.handovers) == sc.physics_timestep_us < max(threaded.handovers) <= CHECK_PERIOD_US
     stepper = threaded.stepper
     stepper.start(threaded.t_us + threaded.dt_us)
     stepper.close()  # waits for the running step
     assert not stepper._thread.is_alive()  # type: ignore[attr-defined]
+
+
+def test_a_handover_of_several_steps_holds_each_steps_observations() -> None:
+    """The native stepper's handover of several steps: the state at each step's start is held
+    for its observers as soon as that step has begun, and the world ends as stepped one by one."""
+    sc = parse_scenario({"loops": 3, "duration_s": 2})
+    plain, threaded = World(sc), World(sc)
+    for world in (plain, threaded):
+        for cell in range(3):
+            world.spawn(cell)
+        world.advance_to(153_000)  # the parts ride their belts; no cup waits to seal
+    steps = threaded.steps_alone()
+    assert steps == CHECK_PERIOD_US // sc.physics_timestep_us - 3  # up to the next task check
+    expected = []
+    for _ in range(steps):
+        expected.append([(plain.joint_state(i), plain.objects(i)) for i in range(3)])
+        plain.advance_to(plain.t_us + plain.dt_us)
+    stepper = make_stepper("native", threaded)
+    start = threaded.t_us
+    stepper.start(start + 50_000, steps)
+    assert stepper.end_us == start + steps * sc.physics_timestep_us
+    for k in range(steps):
+        t_us = start + k * sc.physics_timestep_us + 400  # inside step k
+        stepper.reach(t_us)
+        threaded.observe_at(t_us)
+        assert [(threaded.joint_state(i), threaded.objects(i)) for i in range(3)] == expected[k], k
+    stepper.wait()
+    assert threaded.t_us == plain.t_us
+    for name in ("qpos", "qvel"):
+        assert getattr(threaded.data, name).tobytes() == getattr(plain.data, name).tobytes(), name
+    with pytest.raises(RuntimeError, match="no state held"):
+        threaded.observe_at(start)  # observations come in time order: that one is gone
+    stepper.close()
 
 
 def test_observations_during_a_step_show_its_start_before_the_belt_drive() -> None:
