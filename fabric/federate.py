@@ -191,6 +191,11 @@ class Federate:
         has not processed yet: no message can reach it before then (``next_send_us``). Its
         events must not see that work's effects before their time."""
 
+    def working_ahead(self) -> bool:
+        """In a group: whether work started by ``work_ahead`` still runs; the group then offers
+        no more until it has ended."""
+        return False
+
     def next_send_us(self, plane: str, now_us: int) -> int:
         """In a group: the earliest simulated time, from ``now_us`` (the group's time) on, at which
         this federate may send a message on ``plane``; with it the group tells a member working

@@ -120,6 +120,8 @@ class FederateGroup(Federate):
             best.process_next()
             now = best.now
             for worker, others, planes in self._workers:
+                if worker.working_ahead():
+                    continue
                 # A message sent at s is delivered at the end of s's base window at the earliest.
                 until = t_end
                 for o in others:

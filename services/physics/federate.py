@@ -86,6 +86,9 @@ class PhysicsFederate(Federate):
         if world.t_us + self.step_us <= target:
             stepper.start(target, world.steps_alone())
 
+    def working_ahead(self) -> bool:
+        return self._stepper is not None and self._stepper.busy()
+
     def _settle(self) -> None:
         """Wait for the steps running ahead, if any (their error is raised here)."""
         if self._stepper is not None:

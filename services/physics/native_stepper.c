@@ -42,6 +42,8 @@ typedef struct {
     long n_belt;
     double belt_speed;
     double *held_qpos, *held_qvel;
+    /* set when the current handover's steps are all done (read without a call by the caller) */
+    int finished;
     /* steps of the current handover done so far */
     pthread_mutex_t lock;
     pthread_cond_t progress;
@@ -95,6 +97,7 @@ void cosim_stepper_serve(stepper *s) {
             pthread_cond_broadcast(&s->progress);
             pthread_mutex_unlock(&s->lock);
         }
+        __atomic_store_n(&s->finished, 1, __ATOMIC_RELEASE);
         sem_post(&s->done);
     }
 }
@@ -112,8 +115,13 @@ void cosim_stepper_go(stepper *s, int steps, const long *belt, long n_belt, doub
     pthread_mutex_lock(&s->lock);
     s->steps_done = 0;
     pthread_mutex_unlock(&s->lock);
+    __atomic_store_n(&s->finished, 0, __ATOMIC_RELEASE);
     sem_post(&s->go);
 }
+
+/* Where the flag "the handover's steps are done" is: the caller reads it between its events
+ * without a call; a done handover is then taken back with cosim_stepper_try_wait. */
+int *cosim_stepper_finished_flag(stepper *s) { return &s->finished; }
 
 /* Block until `steps` steps of the current handover are done (with their copies). */
 void cosim_stepper_wait_steps(stepper *s, int steps) {

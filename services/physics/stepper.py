@@ -50,6 +50,8 @@ class Stepper(Protocol):
 
     def reach(self, t_us: int) -> None: ...
 
+    def busy(self) -> bool: ...
+
     def poll(self) -> bool: ...
 
     def close(self) -> None: ...
@@ -118,6 +120,13 @@ class _SplitStep:
         """Wait until the running handover holds the state at ``t_us`` (before ``end_us``): the
         step in which it falls has begun."""
 
+    def busy(self) -> bool:
+        """Whether steps handed over still run (without ending them: ``poll`` does)."""
+        return self.running and not self._finished()
+
+    def _finished(self) -> bool:
+        raise NotImplementedError
+
     def wait(self) -> None:
         """Wait for the running steps, if any, and end them (their error is raised here)."""
         if not self.running:
@@ -174,12 +183,14 @@ class NativeStepAhead(_SplitStep):
                    lib.cosim_stepper_free):
             fn.restype, fn.argtypes = None, [ptr]
         lib.cosim_stepper_try_wait.restype, lib.cosim_stepper_try_wait.argtypes = ctypes.c_int, [ptr]
+        lib.cosim_stepper_finished_flag.restype, lib.cosim_stepper_finished_flag.argtypes = ptr, [ptr]
         self._lib = lib
         qpos, qvel = world.data.qpos, world.data.qvel
         self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address,
                                              qpos.ctypes.data, qvel.ctypes.data, qpos.size, qvel.size)
         if not self._handle:
             raise MemoryError("native stepper: no memory for its semaphores")
+        self._done_flag = ctypes.c_int.from_address(lib.cosim_stepper_finished_flag(self._handle))
         self._handed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # alive while running
         # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.
         self._thread = threading.Thread(target=lib.cosim_stepper_serve, args=(self._handle,),
@@ -206,6 +217,9 @@ class NativeStepAhead(_SplitStep):
     def _join(self) -> None:
         self._lib.cosim_stepper_wait(self._handle)
         self._handed = None
+
+    def _finished(self) -> bool:
+        return self._done_flag.value != 0
 
     def _try_join(self) -> bool:
         if not self._lib.cosim_stepper_try_wait(self._handle):
@@ -241,6 +255,9 @@ class StepAhead(_SplitStep):
 
     def _try_join(self) -> bool:
         return self._done.acquire(blocking=False)
+
+    def _finished(self) -> bool:
+        return not self._done.locked()
 
     def _check(self) -> None:
         error, self._error = self._error, None
