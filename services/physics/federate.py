@@ -89,11 +89,6 @@ class PhysicsFederate(Federate):
     def working_ahead(self) -> bool:
         return self._stepper is not None and self._stepper.busy()
 
-    def _settle(self) -> None:
-        """Wait for the steps running ahead, if any (their error is raised here)."""
-        if self._stepper is not None:
-            self._stepper.wait()
-
     def process_next(self) -> None:
         key = self.next_event_key()
         assert key is not None, "process_next with no event pending"
@@ -212,7 +207,8 @@ class PhysicsFederate(Federate):
         self._record_tasks(self.world.take_ended(self.now))
 
     def finish(self, reason: str) -> dict[str, Any]:
-        self._settle()
+        if self._stepper is not None:
+            self._stepper.wait()  # the steps running ahead, if any (their error is raised here)
         # To the end of the last window, which no step ahead passes: the same end however far
         # the steps ahead had got.
         self.world.advance_to(min(max(self.now, self.window_end), self.scenario.duration_us))

@@ -306,6 +306,30 @@ def test_a_handover_of_several_steps_holds_each_steps_observations() -> None:
     stepper.close()
 
 
+def test_the_python_stepper_hands_back_its_steps_error_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    world = World(parse_scenario({"loops": 1, "duration_s": 1}))
+    stepper = make_stepper("python", world)
+    stepper.wait()  # nothing running: returns at once
+    stepper.start(world.t_us + world.dt_us)
+    assert stepper.running
+    with pytest.raises(RuntimeError, match="running already"):
+        stepper.start(world.t_us + world.dt_us)
+    stepper.wait()
+    assert world.t_us == world.dt_us and not stepper.running
+
+    def broken(model: Any, data: Any) -> None:
+        raise ValueError("no such step")
+
+    monkeypatch.setattr(mujoco, "mj_step", broken)
+    stepper.start(world.t_us + world.dt_us)
+    with pytest.raises(ValueError, match="no such step"):
+        stepper.wait()
+    stepper.wait()  # the error is raised once
+    assert world.t_us == world.dt_us  # the failed step did not count
+    stepper.close()
+    assert not stepper._thread.is_alive()  # type: ignore[attr-defined]
+
+
 def test_observations_during_a_step_show_its_start_before_the_belt_drive() -> None:
     sc = parse_scenario({"loops": 1, "duration_s": 2})
     world = World(sc)
