@@ -94,9 +94,15 @@ class SensorModel:
 
     def rgb(self, rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Colour with shot and read noise (uint8 HxWx3)."""
-        x = rgb.astype(np.float32)
-        sd = np.sqrt(self.rgb_read_dn**2 + self.rgb_gain_dn * x)
-        return np.clip(np.rint(x + rng.standard_normal(x.shape, dtype=np.float32) * sd), 0, 255).astype(np.uint8)
+        # The sd of each of the 256 levels, looked up per pixel: the same float32 values as the
+        # square root taken per pixel, at a quarter of its cost; in place, no temporaries.
+        sd = np.sqrt(self.rgb_read_dn**2 + self.rgb_gain_dn * np.arange(256, dtype=np.float32))
+        out = rng.standard_normal(rgb.shape, dtype=np.float32)
+        out *= sd[rgb]
+        out += rgb
+        np.rint(out, out=out)
+        np.clip(out, 0, 255, out=out)
+        return out.astype(np.uint8)
 
 
 def decimate_depth(depth_mm: np.ndarray, factor: int) -> np.ndarray:
@@ -140,9 +146,17 @@ def frame_offset_us(loop: int, loops: int, frame_period_us: int, step_us: int) -
     return (loop * frame_period_us // max(loops, 1)) // step_us * step_us
 
 
-def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float, rng: np.random.Generator) -> np.ndarray:
+def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float,
+                    rng: np.random.Generator | None) -> np.ndarray:
     """Stereo depth as a D435-class sensor reports it: uint16 millimetres, noise growing with
-    distance squared, zero where nothing is measured."""
-    noise = rng.normal(0.0, 1.0, depth_m.shape).astype(np.float32) * (noise_mm_at_1m * depth_m**2)
-    mm = depth_m * 1000.0 + noise
+    distance squared, zero where nothing is measured. A caller whose stream serves nothing else
+    may pass ``rng=None`` for noise-free depth: the same values, without drawing (and then
+    multiplying by zero) a normal per pixel."""
+    if rng is None:
+        if noise_mm_at_1m != 0.0:
+            raise ValueError(f"depth noise of {noise_mm_at_1m} mm at 1 m needs a random stream (rng=None)")
+        mm = depth_m * 1000.0
+    else:
+        noise = rng.normal(0.0, 1.0, depth_m.shape).astype(np.float32) * (noise_mm_at_1m * depth_m**2)
+        mm = depth_m * 1000.0 + noise
     return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)

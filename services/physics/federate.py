@@ -33,7 +33,8 @@ class PhysicsFederate(Federate):
         self.world = World(sc)
         self.step_us = sc.physics_timestep_us
         self.frame_period = sc.frame_period_us
-        self.noise_rng = self.rng("depth-noise")
+        # Without depth noise the stream would serve only draws multiplied by zero (4 ms a frame).
+        self.noise_rng = self.rng("depth-noise") if sc.camera.depth_noise_mm else None
         self.frames_sent = 0
         self.tasks = self.table("tasks")
         self.tasks_ended = 0

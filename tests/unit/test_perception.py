@@ -90,6 +90,23 @@ def test_sensor_noise_grows_with_distance_squared_and_invalidates_the_left_band(
     assert abs(sds[0] - 0.8**2 * 0.08 / (324.7 * 0.05) * 1000) < 0.5
 
 
+def test_colour_noise_is_shot_and_read_noise_per_pixel(rendered: tuple) -> None:
+    """The looked-up sd per level gives, to the bit, the formula taken pixel by pixel."""
+    rgb, _, _ = rendered
+    sm = SensorModel(f_px=324.7)
+    x = rgb.astype(np.float32)
+    noise = rng(0, "colour").standard_normal(x.shape, dtype=np.float32)
+    expected = np.clip(np.rint(x + noise * np.sqrt(sm.rgb_read_dn**2 + sm.rgb_gain_dn * x)), 0, 255)
+    assert np.array_equal(sm.rgb(rgb, rng(0, "colour")), expected.astype(np.uint8))
+
+
+def test_noise_free_depth_is_the_same_without_a_stream() -> None:
+    depth_m = rng(0, "depth").uniform(0.2, 2.5, (36, 64)).astype(np.float32)
+    assert np.array_equal(sensor_depth_mm(depth_m, 0.0, None), sensor_depth_mm(depth_m, 0.0, rng(0, "noise")))
+    with pytest.raises(ValueError, match="needs a random stream"):
+        sensor_depth_mm(depth_m, 1.0, None)
+
+
 def test_default_camera_frame_is_about_35_kilobytes(rendered: tuple) -> None:
     rgb, depth, _ = rendered
     cam = parse_scenario({}).camera
