@@ -61,24 +61,44 @@ class SensorModel:
         coarse = rng.standard_normal((gh, gw), dtype=np.float32)
         corr = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
         corr *= sd_corr / max(float(corr.std()), 1e-6)  # interpolation lowers the variance between nodes
-        white = rng.standard_normal((h, w), dtype=np.float32) * (self.subpixel_px * self.white_fraction)
-        noisy = disp + corr + white
+        white = rng.standard_normal((h, w), dtype=np.float32)
+        white *= self.subpixel_px * self.white_fraction
+        noisy = disp + corr
+        noisy += white
         invalid = ~valid | (noisy <= 0.1)
         # Left band: columns u < d are outside the right imager's view.
         invalid |= np.arange(w, dtype=np.float32)[None, :] < disp
         invalid |= self._shadow(disp)
         invalid |= self._edges(z, rng)
-        out = np.where(invalid, 0.0, fb / np.maximum(noisy, 0.1) * 1000.0)
-        return np.clip(np.rint(out), 0, 65535).astype(np.uint16)
+        out = fb / np.maximum(noisy, 0.1, out=noisy)  # float64 where f_px is (the intrinsics')
+        out *= 1000.0
+        out[invalid] = 0.0
+        np.rint(out, out=out)
+        return np.clip(out, 0, 65535, out=out).astype(np.uint16)
 
     @staticmethod
     def _shadow(disp: np.ndarray) -> np.ndarray:
         """Pixels the right imager cannot see: a nearer surface k columns to the right projects
-        onto the same right-image column (disparity larger by at least k)."""
+        onto the same right-image column (disparity larger by at least k). Computed for the
+        pixels with a disparity; those without one are invalid anyway."""
         span = int(min(MAX_SHADOW_PX, np.ceil(float(disp.max() - disp[disp > 0].min(initial=0.0)))))
-        occluded = np.zeros(disp.shape, bool)
+        # A pixel can be hidden k columns away only if k is less than its row's disparity range
+        # plus one half: most rows need a few k, the rows with the arm near the camera many.
+        # Sorted by that reach, each k compares only the rows it can reach.
+        low = np.where(disp > 0, disp, np.inf).min(axis=1)
+        spread = np.where(np.isfinite(low), disp.max(axis=1) - low, -1.0)
+        reach = np.minimum(np.floor(spread) + 1, span).astype(np.intp)
+        order = np.argsort(-reach, kind="stable")
+        rows = disp[order]
+        reached = np.cumsum(np.bincount(reach, minlength=span + 1)[::-1])[::-1]  # rows with reach >= k
+        hidden = np.zeros(disp.shape, bool)
         for k in range(1, span + 1):
-            occluded[:, :-k] |= disp[:, k:] - k > disp[:, :-k] + 0.5
+            n = int(reached[k])
+            if n == 0:
+                break
+            hidden[:n, :-k] |= rows[:n, k:] - k > rows[:n, :-k] + 0.5
+        occluded = np.empty_like(hidden)
+        occluded[order] = hidden
         return occluded
 
     def _edges(self, z: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -16,7 +16,14 @@ from domain.cell_geometry import CameraIntrinsics
 from domain.codec import decode_frame, encode_frame, slot_after, split_packets
 from domain.estimator import ClassicalEstimator, make_estimator
 from domain.pose_net import DEFAULT_MODEL, LearnedEstimator
-from domain.sensor import SensorModel, decimate_depth, sense, sensor_depth_mm, sensor_for
+from domain.sensor import (
+    MAX_SHADOW_PX,
+    SensorModel,
+    decimate_depth,
+    sense,
+    sensor_depth_mm,
+    sensor_for,
+)
 from domain.tracker import Tracker
 from domain.world import World
 from fabric.seeding import rng
@@ -98,6 +105,20 @@ def test_colour_noise_is_shot_and_read_noise_per_pixel(rendered: tuple) -> None:
     noise = rng(0, "colour").standard_normal(x.shape, dtype=np.float32)
     expected = np.clip(np.rint(x + noise * np.sqrt(sm.rgb_read_dn**2 + sm.rgb_gain_dn * x)), 0, 255)
     assert np.array_equal(sm.rgb(rgb, rng(0, "colour")), expected.astype(np.uint8))
+
+
+def test_occlusion_shadow_is_the_scan_over_every_shift(rendered: tuple) -> None:
+    """Rows scanned only as far as their disparity range reaches find every hidden pixel that a
+    scan of every shift finds (for the pixels with a disparity: the others are invalid)."""
+    _, depth, _ = rendered
+    sm = SensorModel(f_px=324.7)
+    disp = np.where(depth > 0, 324.7 * 0.05 / np.maximum(depth / 1000.0, 1e-3), 0.0).astype(np.float32)
+    disp[100:140, 300:330] += 20.0  # a near surface: a wide shadow on its left
+    scan = np.zeros(disp.shape, bool)
+    for k in range(1, min(MAX_SHADOW_PX, int(np.ceil(disp.max()))) + 1):
+        scan[:, :-k] |= disp[:, k:] - k > disp[:, :-k] + 0.5
+    shadow = sm._shadow(disp)
+    assert shadow[110, 290] and np.array_equal(shadow[disp > 0], scan[disp > 0])
 
 
 def test_noise_free_depth_is_the_same_without_a_stream() -> None:
