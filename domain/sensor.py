@@ -81,21 +81,18 @@ class SensorModel:
         """Pixels the right imager cannot see: a nearer surface k columns to the right projects
         onto the same right-image column (disparity larger by at least k). Computed for the
         pixels with a disparity; those without one are invalid anyway."""
-        span = int(min(MAX_SHADOW_PX, np.ceil(float(disp.max() - disp[disp > 0].min(initial=0.0)))))
         # A pixel can be hidden k columns away only if k is less than its row's disparity range
-        # plus one half: most rows need a few k, the rows with the arm near the camera many.
-        # Sorted by that reach, each k compares only the rows it can reach.
+        # plus one half (and k <= MAX_SHADOW_PX): most rows need a few k, the rows with the arm
+        # near the camera many. Sorted by that reach, each k compares only the rows it can reach.
         low = np.where(disp > 0, disp, np.inf).min(axis=1)
         spread = np.where(np.isfinite(low), disp.max(axis=1) - low, -1.0)
-        reach = np.minimum(np.floor(spread) + 1, span).astype(np.intp)
+        reach = np.minimum(np.floor(spread) + 1, MAX_SHADOW_PX).astype(np.intp)
         order = np.argsort(-reach, kind="stable")
         rows = disp[order]
-        reached = np.cumsum(np.bincount(reach, minlength=span + 1)[::-1])[::-1]  # rows with reach >= k
+        reached = np.cumsum(np.bincount(reach)[::-1])[::-1]  # reached[k]: rows with reach >= k
         hidden = np.zeros(disp.shape, bool)
-        for k in range(1, span + 1):
+        for k in range(1, len(reached)):
             n = int(reached[k])
-            if n == 0:
-                break
             hidden[:n, :-k] |= rows[:n, k:] - k > rows[:n, :-k] + 0.5
         occluded = np.empty_like(hidden)
         occluded[order] = hidden

@@ -569,7 +569,7 @@ class World:
     def joint_state(self, cell: int) -> dict[str, Any]:
         c, seen = self.cells[cell], self._seen
         if seen is None:
-            return {"q": [float(v) for v in self.data.qpos[c.qadr]], "gripped": self._observed(c)[0]}
+            return {"q": [float(v) for v in self.data.qpos[c.qadr]], "gripped": c.gripped is not None}
         return {"q": [float(v) for v in seen[0][c.qadr]], "gripped": seen[2][cell][0]}
 
     def tool_position(self, cell: int) -> np.ndarray:
