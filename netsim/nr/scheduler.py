@@ -79,6 +79,11 @@ class ProportionalFair(Scheduler):
                 k = prev - last[u]
                 if k > 0:
                     t *= powers[k] if k < n_powers else self.beta**k
+            else:
+                t = 0.0
+            # A UE starved for thousands of slots has its average underflow to 0.0: it then
+            # ranks as one never served (T = 0), first within its priority class.
+            if t > 0.0:
                 # -1.0 * r is exactly -r: the common unweighted case skips the product.
                 append((-rate[u] if w == 1.0 else -w * rate[u]) / t)
             else:  # never served (T = 0): first within its priority class, the urgent first

@@ -338,3 +338,18 @@ def test_lower_layer_qos_serves_the_urgent_flow_first_in_the_same_slot(flat_conf
     assert winner == "ue1" and first["ue1"] < first["ue0"], first
     winner, first = first_grant(urgent=False)
     assert winner == "ue0" and first["ue0"] < first["ue1"], first
+
+
+def test_pf_ranks_a_ue_starved_for_thousands_of_slots_first() -> None:
+    """A UE unserved long enough has its average decay past the smallest float to 0.0: it ranks
+    as one never served (first), with no division by zero."""
+    pf = ProportionalFair(3, 0.95)
+    pf.served(0, 10_000, 0)
+    starved = 40_000  # 0.95**40_000 * 10_000 underflows to 0.0
+    pf.served(1, 10_000, starved - 1)
+    assert pf.average(0, starved) == 0.0
+    assert pf.order([0, 1], [10, 10], [100.0, 100.0], starved)[0] == 0
+    assert next(pf.ranked([1, 0], [10, 10], [100.0, 100.0], starved)) == 0
+    # Urgency still orders two starved UEs, as it orders UEs never served.
+    pf.served(2, 10_000, 0)
+    assert pf.order([0, 2], [10, 10, 10], [100.0, 100.0, 100.0], starved, [1.0, 1.0, 4.0]) == [2, 0]
