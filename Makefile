@@ -20,7 +20,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
-	reproduce reproduce-quick reproduce-codesign soak chaos native \
+	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
@@ -91,6 +91,12 @@ reproduce-quick: $(BIN)/cosim5g native ## the same, short: loops 4..36 step 4, o
 reproduce-codesign: $(BIN)/cosim5g native ## where co-design's capacity comes from: none/heuristic/learned (app, lower) + ablations, default cell and 3 family cells
 	$(BIN)/cosim5g sweep configs/sweeps/codesign.yaml --jobs $(JOBS)
 	$(BIN)/cosim5g sweep configs/sweeps/codesign_family.yaml --jobs $(JOBS)
+
+reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the training family x policy x floor x 3 seeds: capacity, gain over PDP 1 and the invariant per cell (hours on 2 cores)
+	$(BIN)/cosim5g sweep configs/sweeps/family.yaml --jobs $(JOBS)
+
+reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
+	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
 
 images: setup $(BIN)/cosim5g native ## build the runtime and Prometheus images without a registry (see docs/docker.md)
 	PYTHON=$(PYTHON) bash images/build.sh

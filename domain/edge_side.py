@@ -12,11 +12,14 @@ import numpy as np
 
 from domain import cell_geometry as g
 from domain.codec import slot_after
-from domain.policy import LoopState, Qos, make_policy
+from domain.congestion import LoadControl, UplinkMonitor
+from domain.frame_model import load_frame_model
+from domain.policy import LearnedPolicy, LoopState, Qos, check_family, make_policy, step_up
 from domain.policy_features import LIFTED_M, spawn_time_us
+from domain.safety_floor import FloorLimits, safety_floor
 from domain.tracker import Tracker
 from fabric import metrics
-from scenario.schema import CellConfig, PolicyConfig, Scenario
+from scenario.schema import CellConfig, EdgeConfig, PolicyConfig, RobotConfig, Scenario
 
 # An unchanged QoS is signalled again this often: the downlink can lose it.
 QOS_REFRESH_US = 1_000_000
@@ -36,27 +39,38 @@ class CoDesign:
 
     ``cell`` is the scenario's CellConfig (a bare belt speed in m/s is accepted too: the cell
     is then known by its speed only); ``loops`` is how many loops share the radio cell and
-    ``fps`` the cameras' frame rate. Per loop it remembers when the newest part it has seen
-    landed on the belt, so that a policy knows when the next one is due."""
+    ``fps`` the cameras' frame rate; ``limits`` what the safety floor protects (None: the
+    scenario's defaults). Per loop it remembers when the newest part it has seen landed on the
+    belt, so that a policy knows when the next one is due, and it watches the uplink's frames
+    (``monitor``) for the floor's margins and the load control."""
 
     def __init__(self, cfg: PolicyConfig, cell: CellConfig | float, loops: int = 1,
-                 fps: float = 30.0) -> None:
+                 fps: float = 30.0, limits: FloorLimits | None = None) -> None:
         self.policy = make_policy(cfg)
         self.controls = cfg.controls  # an ablation may apply only part of the policy's QoS
         self.object_period_s: float | None = None
+        self.object_jitter_s = 0.0
         if isinstance(cell, CellConfig):
             self.belt_speed_m_s, self.object_period_s = cell.belt_speed_m_s, cell.object_period_s
+            self.object_jitter_s = cell.object_jitter_s
+            if isinstance(self.policy, LearnedPolicy):
+                check_family(self.policy.info, self.policy.path, cell)
         else:
             self.belt_speed_m_s = float(cell)
         self.loops = loops
         self.fps = fps
         self.sent: dict[int, tuple[Qos, int]] = {}
         self.last_spawn_us: dict[int, int] = {}
+        self.monitor = UplinkMonitor()
+        codesign = cfg.name != "none"  # PDP 1 is the reference: never floored nor capped
+        self.limits = (limits or default_limits(cfg)) if codesign and cfg.floor else None
+        self.load = load_control(cfg) if codesign else None
+        self._period_us: int | None = None
 
     @classmethod
     def for_scenario(cls, sc: Scenario) -> CoDesign:
         """The co-design of a scenario's loops: its policy, cell, loop count and camera rate."""
-        return cls(sc.policy, sc.cell, sc.loops, sc.camera.fps)
+        return cls(sc.policy, sc.cell, sc.loops, sc.camera.fps, default_limits(sc.policy, sc))
 
     def state(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> LoopState:
         """What the Edge knows of ``loop`` now."""
@@ -68,17 +82,40 @@ class CoDesign:
                 if last is None or spawn > last:
                     self.last_spawn_us[loop] = spawn
         return LoopState(now_us, tracks, last_frame_us, self.belt_speed_m_s, self.object_period_s,
-                         self.loops, self.fps, self.last_spawn_us.get(loop))
+                         self.loops, self.fps, self.last_spawn_us.get(loop), self.object_jitter_s,
+                         self.monitor.estimate(loop))
 
     def decide(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> Qos:
-        """The policy's QoS for ``loop`` from what the Edge knows of it now."""
-        qos = self.policy.decide(self.state(loop, now_us, tracker, last_frame_us))
-        if self.controls == "pdp":
-            qos = Qos(qos.pdp, None)
-        elif self.controls == "budget":
-            qos = Qos(1.0, qos.pdb_us)
+        """The policy's QoS for ``loop`` from what the Edge knows of it now, bounded by the safety
+        floor and the load control (the first decision of a policy period folds
+        the uplink's last period into both first)."""
+        if now_us != self._period_us:
+            self._period_us = now_us
+            self.period(now_us)
+        state = self.state(loop, now_us, tracker, last_frame_us)
+        qos = self.apply(state, self.policy.decide(state))
         metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
         return qos
+
+    def period(self, now_us: int) -> None:
+        """A new policy period: the uplink's last period folded into the cell's figures and the
+        load control."""
+        queueing_s, loss = self.monitor.period(now_us)
+        if self.load is not None:
+            self.load.update(now_us, queueing_s, loss)
+            metrics.PDP_FILL.set(self.load.fill)
+            metrics.PDP_CAP.set(self.load.cap)
+        metrics.QUEUEING_DELAY.set(queueing_s)
+
+    def apply(self, state: LoopState, qos: Qos) -> Qos:
+        """``qos`` bounded by the safety floor and the load control, reduced to the ablation's
+        ``controls``."""
+        pdp = bounded_pdp(state, qos.pdp, self.limits, self.load)
+        if self.controls == "pdp":
+            return Qos(pdp, None)
+        if self.controls == "budget":
+            return Qos(1.0, qos.pdb_us)
+        return Qos(pdp, qos.pdb_us)
 
     def signal(self, loop: int, qos: Qos, now_us: int) -> dict[str, Any] | None:
         """The QoS message for the camera of ``loop`` if it must be sent now (changed, or not sent
@@ -88,6 +125,35 @@ class CoDesign:
             return None
         self.sent[loop] = (qos, now_us)
         return {"type": "qos", "loop": loop, "pdp": qos.pdp, "pdb_us": qos.pdb_us}
+
+
+def bounded_pdp(state: LoopState, pdp: float, limits: FloorLimits | None, load: LoadControl | None) -> float:
+    """``pdp`` raised to the safety floor (``limits``; None: no floor) and to the load control's
+    fill (PDP 1 while the cell has headroom), then capped by its cap (None: neither). Past
+    capacity the cap wins: a floor raised by stale estimates must not feed the congestion that
+    made them stale."""
+    if limits is not None:
+        pdp = max(pdp, safety_floor(state, limits))
+    if load is not None:
+        pdp = min(max(pdp, step_up(load.fill)), step_up(load.cap))
+    return pdp
+
+
+def load_control(cfg: PolicyConfig) -> LoadControl | None:
+    """The load control ``cfg`` asks for: its headroom fill and its guard's cap (None: neither)."""
+    if not cfg.headroom and not cfg.guard:
+        return None
+    return LoadControl(cfg.headroom_delay_ms / 1000 if cfg.headroom else None,
+                       cfg.guard_delay_ms / 1000 if cfg.guard else None, cfg.guard_min_pdp)
+
+
+def default_limits(cfg: PolicyConfig, sc: Scenario | None = None) -> FloorLimits:
+    """What the safety floor protects in scenario ``sc`` (None: the schema's defaults): the
+    robot's estimate age limit, the estimator's measured miss rate, ``cfg.floor_risk`` and the
+    policy period."""
+    robot, edge = (sc.robot, sc.edge) if sc is not None else (RobotConfig(), EdgeConfig())
+    return FloorLimits(robot.max_estimate_age_ms / 1000, load_frame_model().miss_rate, cfg.floor_risk,
+                       edge.policy_period_ms / 1000)
 
 
 def lower_layer_qos(loop: int, qos: Qos, now_us: int, cfg: PolicyConfig, slot_us: int) -> tuple[int, dict[str, Any]]:

@@ -18,6 +18,7 @@ import numpy as np
 
 from domain import cell_geometry as g
 from domain import policy_features as F
+from domain.congestion import IDLE_LINK, LinkEstimate
 from domain.tracker import ACCEL_SD, GATE_M
 from scenario.schema import PolicyConfig
 
@@ -38,6 +39,8 @@ class LoopState:
     loops: int = 1  # loops sharing the radio cell (its load at PDP 1)
     fps: float = 30.0  # camera frame rate
     last_spawn_us: int | None = None  # when the newest part seen landed on the belt
+    object_jitter_s: float = 0.0  # the cell's spawn jitter (+-), s
+    link: LinkEstimate = IDLE_LINK  # the uplink's delay and loss as the Edge sees them
 
 
 @dataclass(frozen=True)
@@ -83,12 +86,19 @@ PICK_TIME_S = 0.5  # the arm's alignment to sealed grip (the controller's GRASP_
 SD_LIMIT_M = GATE_M / 2  # a prediction this uncertain may match the wrong part
 
 
-def pdp_for_deadline(deadline_s: float, fps: float) -> float:
-    """The lowest PDP that brings a frame within ``deadline_s`` with probability 1 - MISS_RISK."""
+def step_up(pdp: float) -> float:
+    """``pdp`` rounded up to PDP_STEP, at most 1 (a QoS is signalled in those steps)."""
+    return round(min(1.0, math.ceil(round(pdp / PDP_STEP, 6)) * PDP_STEP), 4)
+
+
+def pdp_for_deadline(deadline_s: float, fps: float, useful: float = 1.0, risk: float = MISS_RISK) -> float:
+    """The lowest PDP that brings a useful frame within ``deadline_s`` with probability 1 - risk,
+    when a kept frame is useful (arrives and shows the part) with probability ``useful``: each of
+    the ``deadline_s * fps`` captures is useful with PDP x useful, independently."""
     n = deadline_s * fps
     if n <= 1.0:
         return 1.0
-    return 1.0 - MISS_RISK ** (1.0 / n)
+    return min(1.0, (1.0 - risk ** (1.0 / n)) / max(useful, 1e-6))
 
 
 class HeuristicPolicy(Policy):
@@ -136,7 +146,7 @@ class HeuristicPolicy(Policy):
             reach_s = (x0 - g.SPAWN_X) / v
             deadline = (reach_s + window_s - c.approach_s - PICK_TIME_S) / 2
             pdp = max(pdp, pdp_for_deadline(deadline, state.fps))
-        return Qos(round(min(1.0, math.ceil(round(pdp / PDP_STEP, 6)) * PDP_STEP), 4), pdb)
+        return Qos(step_up(pdp), pdb)
 
     @staticmethod
     def _next_part_unlikely(state: LoopState) -> bool:
@@ -198,6 +208,22 @@ def decode(logits: np.ndarray, pdp_levels: tuple[float, ...], budget_levels_ms: 
     return Qos(round(float(np.clip(pdp, min(pdp_levels), 1.0)), 4), int(budget_ms * 1000))
 
 
+def check_family(info: dict[str, Any], path: Path, cell: Any) -> None:
+    """Refuse a work cell outside the family the learned policy at ``path`` was trained on (its
+    card's ``family`` ranges), naming the field, the cell's value and the family's range."""
+    family = info.get("family")
+    if not family:
+        raise ValueError(f"learned policy model card {path.with_suffix('.json')} names no training "
+                         f"family; retrain: {TRAIN_COMMAND}")
+    for field in ("belt_speed_m_s", "object_period_s"):
+        lo, hi = family[field]
+        value = getattr(cell, field)
+        if not lo <= value <= hi:
+            raise ValueError(f"cell.{field} = {value} is outside the family the learned policy {path} "
+                             f"was trained on ({field} {lo}-{hi}); use a cell of that family or "
+                             f"retrain over one that holds it: {TRAIN_COMMAND}")
+
+
 def load_model_card(path: Path) -> dict[str, Any]:
     """The model card beside a learned policy (``policy.json`` for ``policy.onnx``), checked
     against this code's observation; errors name the file and how to make it."""
@@ -209,9 +235,12 @@ def load_model_card(path: Path) -> dict[str, Any]:
         raise FileNotFoundError(f"learned policy model card {card} (beside {path}) not found; "
                                 f"retrain: {TRAIN_COMMAND}")
     info = json.loads(card.read_text())
-    if tuple(info.get("features", ())) != F.FEATURE_NAMES:
-        raise ValueError(f"learned policy {path} was trained on other features than "
-                         f"domain/policy_features.py computes; retrain it: {TRAIN_COMMAND}")
+    trained = info.get("feature_set", "v1")
+    if trained != F.FEATURE_SET or tuple(info.get("features", ())) != F.FEATURE_NAMES:
+        raise ValueError(f"learned policy {path} was trained on feature set {trained!r} "
+                         f"({', '.join(info.get('features', ())[-2:])}, ...), but domain/policy_features.py "
+                         f"computes set {F.FEATURE_SET!r} ({', '.join(F.FEATURE_NAMES[-2:])}, ...); "
+                         f"retrain it: {TRAIN_COMMAND}")
     for key in ("pdp_levels", "budget_levels_ms"):
         if not info.get(key):
             raise ValueError(f"learned policy model card {card} lacks {key!r}; retrain: {TRAIN_COMMAND}")

@@ -6,11 +6,12 @@ parts that need the arm first, where they are relative to the pick window (in wi
 in seconds of belt travel), their measured speed, the tracker's position sd, the estimate's age;
 whether a part is lifted off the belt (the arm holds it: the only sign of the robot's phase the
 Edge sees); the age of the last frame; when the next part is due; the cell (belt speed, object
-period) and its load (loops sharing the cell). Every feature is scaled to a few units and
+period) and its load, as the Edge sees it: the smoothed queueing delay of every loop's frames. Every feature is scaled to a few units and
 clipped to [-OBS_LIMIT, OBS_LIMIT].
 
-A model records ``FEATURE_NAMES`` and the action levels it was trained with (policy.json); the
-learned policy refuses a model whose names differ, so changing a feature means retraining.
+A model records ``FEATURE_NAMES``, ``FEATURE_SET`` and the action levels it was trained with
+(policy.json); the learned policy refuses a model whose set differs, naming both, so changing a
+feature means retraining.
 """
 
 from __future__ import annotations
@@ -27,10 +28,14 @@ if TYPE_CHECKING:
 
 TRACK_SLOTS = 2  # parts described, most urgent first
 TRACK_FEATURES = ("present", "window_pos", "t_reach", "t_exit", "speed", "sd", "age")
-GLOBAL_FEATURES = ("n_parts", "lifted", "frame_age", "next_part", "belt_speed", "object_period", "load")
+GLOBAL_FEATURES = ("n_parts", "lifted", "frame_age", "next_part", "belt_speed", "object_period",
+                   "queueing_delay")
 FEATURE_NAMES = tuple(f"track{k}_{f}" for k in range(TRACK_SLOTS) for f in TRACK_FEATURES) + GLOBAL_FEATURES
 N_FEATURES = len(FEATURE_NAMES)
 OBS_LIMIT = 5.0
+# The name of this observation: a model trained on another set is refused. "v1": the load as
+# loops / 20; "v2": the load as the uplink queueing delay the Edge sees.
+FEATURE_SET = "v2"
 
 # Action sets: the PDP levels and latency budgets the learned policy chooses from.
 PDP_LEVELS = (0.1, 0.25, 0.5, 0.75, 1.0)
@@ -39,7 +44,7 @@ BUDGET_LEVELS_MS = (25, 50, 100, 200)
 WINDOW_M = g.PICK_X_RANGE[1] - g.PICK_X_RANGE[0]
 LIFTED_M = 0.09  # a part centre this far above the belt is off it (largest half edge + margin)
 DEFAULT_OBJECT_PERIOD_S = 4.0  # assumed when the loop state does not say
-LOOPS_SCALE = 20.0  # loops a cell carries at PDP 1 (about 180 Mbit/s of 8.8 Mbit/s cameras)
+DELAY_SCALE_S = 0.05  # queueing delays at the Edge: under 15 ms below the cell's capacity, 100s beyond
 TIME_SCALE_S = 2.0
 AGE_SCALE_S = 0.5
 SD_SCALE_M = 0.01
@@ -101,5 +106,6 @@ def features(state: LoopState) -> np.ndarray:
                  else (state.now_us - state.last_frame_us) / 1e6 / AGE_SCALE_S)
     period = state.object_period_s or DEFAULT_OBJECT_PERIOD_S
     out += [len(parts) / 2.0, float(lifted), frame_age, next_part_s(state) / period,
-            state.belt_speed_m_s / SPEED_SCALE_M_S, period / PERIOD_SCALE_S, state.loops / LOOPS_SCALE]
+            state.belt_speed_m_s / SPEED_SCALE_M_S, period / PERIOD_SCALE_S,
+            state.link.cell_queueing_s / DELAY_SCALE_S]
     return np.array([_clip(x) if math.isfinite(x) else 0.0 for x in out], dtype=np.float32)

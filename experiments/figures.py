@@ -4,7 +4,9 @@
 - Fig. 5: injected uplink traffic and uplink throughput vs loops, with the cell's measured
   uplink capacity;
 - Fig. 6: CDF of uplink IP packet latency at a few loads per series, and its tail (1 - CDF) on a
-  log scale.
+  log scale;
+- Fig. 7 (sweeps grouped by condition, e.g. work cell): each series' capacity gain over the
+  reference per group, reference-limited groups marked.
 """
 
 from __future__ import annotations
@@ -116,6 +118,41 @@ def latency_figure(latencies_ms: dict[str, dict[Any, np.ndarray]], x: str) -> Fi
     tail.grid(alpha=0.3, which="both")
     if ax.lines:  # a sweep whose runs kept no packets draws empty axes
         ax.legend(fontsize=7, loc="lower right")
+    return fig
+
+
+def gain_figure(grouped: dict[str, Any], label: str) -> Figure:
+    """Capacity gain over the reference per group and series at threshold ``label`` (a
+    ``grouped_capacity`` record); a gain that is a lower bound (no load swept failed) is hatched,
+    a group whose reference misses tasks at its smallest load is marked and has no bars."""
+    groups = list(grouped["groups"])
+    first = grouped["groups"][groups[0]] if groups else {"series": {}, "reference": None}
+    ref = first["reference"]
+    names = [n for n in first["series"] if n != ref]
+    fig, ax = plt.subplots(figsize=(max(7.0, 0.6 * len(groups) * max(1, len(names)) / 2), 4.2), layout="constrained")
+    width = 0.8 / max(1, len(names))
+    for i, name in enumerate(names):
+        labelled = False
+        for j, g in enumerate(groups):
+            cap = grouped["groups"][g]
+            gain = cap["gain_over_reference"].get(name, {}).get(label, {}).get("ratio")
+            if cap["reference_limited"] or gain is None:
+                continue
+            lower = cap["series"][name][label].get("lower_bound")
+            ax.bar(j + (i - (len(names) - 1) / 2) * width, gain, width, color=f"C{i}",
+                   hatch="//" if lower else None, label=None if labelled else name)
+            labelled = True
+    for j, g in enumerate(groups):
+        if grouped["groups"][g]["reference_limited"]:
+            ax.text(j, 0.05, "reference\nbelow 100%", ha="center", va="bottom", fontsize=7, rotation=90)
+    ax.axhline(1.0, color="grey", lw=0.8)
+    ax.set_xticks(range(len(groups)), groups, rotation=45, ha="right", fontsize=8)
+    ax.set_ylabel(f"capacity gain over {ref}")
+    ax.set_title(f"Capacity gain per {grouped['group']} ({label}; hatched: at least)")
+    ax.grid(alpha=0.3, axis="y")
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        ax.legend(handles, labels, loc="upper left", fontsize=8)
     return fig
 
 

@@ -14,10 +14,18 @@ import pyarrow.parquet as pq
 import yaml
 
 from experiments.cell_capacity import measure_ul_capacity
-from experiments.figures import latency_figure, save, success_figure, traffic_figure
+from experiments.figures import gain_figure, latency_figure, save, success_figure, traffic_figure
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
-from experiments.summary import capacity, capacity_text, gain_text, series_name, summarise
+from experiments.summary import (
+    capacity,
+    capacity_text,
+    gain_text,
+    grouped_capacity,
+    series_name,
+    summarise,
+    threshold_label,
+)
 from fabric.tables import write_json
 from scenario.schema import load_scenario
 
@@ -72,6 +80,9 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
     summary = summarise(points, spec.grid_values())
     write_rows(sweep_dir / "summary.parquet", summary)
     cap = capacity(summary, x, series_fields, spec.capacity.thresholds, spec.capacity.reference)
+    if spec.capacity.group:
+        cap["grouped"] = grouped_capacity(summary, x, series_fields, spec.capacity.thresholds,
+                                          spec.capacity.reference, spec.capacity.group)
     cell = _cell_capacity(sd, records)
     cap["cell_ul_capacity_mbps"] = cell["ul_capacity_mbps"] if cell else None
     write_json(sweep_dir / "capacity.json", cap)
@@ -93,8 +104,41 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
             per_load[load] = np.concatenate([per_load.get(load, np.empty(0)),
                                              _ul_latencies_ms(sweep_dir / rec["run_dir"])])
         figures["fig6_latency_cdf"] = save(latency_figure(lat, x), sweep_dir / "fig6_latency_cdf")
+        if "grouped" in cap:
+            figures["fig7_gain"] = save(gain_figure(cap["grouped"], threshold_label(max(spec.capacity.thresholds))),
+                                        sweep_dir / "fig7_gain")
     (sweep_dir / "report.md").write_text(render_report(spec, sd.meta(), summary, cap, cell, points, figures))
     return cap
+
+
+def grouped_lines(grouped: dict[str, Any], labels: list[str], x: str) -> list[str]:
+    """The report's section of a sweep grouped by condition: per group and series, the capacity
+    at each threshold, the gain over the group's reference and where the invariant holds; then
+    the share of groups each gain reaches."""
+    group = grouped["group"]
+    lines = ["", f"## Per `{group}`", "",
+             f"Capacity within each `{group}`; the invariant: at every `{x}` where the reference places "
+             "every task, the series does too (held up to / first broken at). A group whose reference "
+             "misses tasks at its smallest load cannot keep up whatever the network does: reported, "
+             "and left out of the gains.", "",
+             f"| {group} | series | " + " | ".join(labels) + " | gain | invariant held up to | broken at |",
+             "|---" * (len(labels) + 5) + "|"]
+    for value, cap in grouped["groups"].items():
+        for name, entry in cap["series"].items():
+            gains = cap["gain_over_reference"].get(name, {})
+            gain = ("reference below 100% at the smallest load" if cap["reference_limited"]
+                    else " / ".join(gain_text(g, entry[lab]) for lab, g in gains.items()))
+            inv = cap["invariant"].get(name, {})
+            lines.append(f"| {value} | {name} | " + " | ".join(capacity_text(entry[lab]) for lab in labels)
+                         + f" | {gain} | {_f(inv.get('holds_upto'))} | {_f(inv.get('breaks_at'))} |")
+    lines += ["", "Gains over the reference, groups that keep up at the smallest load: "]
+    for name, by_label in grouped["gain_shares"].items():
+        for lab, ratios in by_label.items():
+            known = [r for r in ratios if r is not None]
+            if known:
+                lines.append(f"- {name}, {lab}: smallest {min(known):.3g}x, median "
+                             f"{float(np.median(known)):.3g}x over {len(known)} groups")
+    return lines
 
 
 def _f(v: Any, digits: int = 3) -> str:
@@ -143,10 +187,13 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
             cells.append(capacity_text(entry[lab]))
         gain = " / ".join(gain_text(g, entry[lab]) for lab, g in gains.items())
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain} |")
+    if "grouped" in cap:
+        lines += grouped_lines(cap["grouped"], labels, x)
     if cell:
         lines += ["", f"Cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
     lines += ["", "## Figures", ""]
-    titles = {"fig4_success": "Fig. 4: task success rate vs loops",
+    titles = {"fig7_gain": "Fig. 7: capacity gain over the reference, per group",
+              "fig4_success": "Fig. 4: task success rate vs loops",
               "fig5_traffic": "Fig. 5: injected uplink traffic and throughput vs loops",
               "fig6_latency_cdf": "Fig. 6: uplink IP packet latency CDF"}
     for stem, files in figures.items():

@@ -75,6 +75,11 @@ class CapacitySpec(SpecModel):
     reference: str | None = Field(
         default=None, description="series the gains are relative to, e.g. `policy.name=none` "
         "(default: the first series of the grid)")
+    group: str | None = Field(
+        default=None, description="grid field whose values are separate conditions, e.g. `variant` "
+        "naming work cells: capacity, the gains over the reference and the invariant (where the "
+        "reference places every task, so does each series) are read within each value (default: "
+        "one condition)")
     stop_after: int | None = Field(
         default=None, ge=1, description="run loads in ascending order and stop a series once this "
         "many consecutive loads miss the lowest threshold: its larger loads cannot change its "
@@ -150,9 +155,13 @@ class SweepSpec(SpecModel):
 
     @model_validator(mode="after")
     def _capacity_axis(self) -> SweepSpec:
-        if self.capacity.x not in self.grid:
-            raise ValueError(f"capacity.x = {self.capacity.x!r} is not a grid field; grid fields: "
-                             f"{', '.join(self.grid)}")
+        for name, field in (("x", self.capacity.x), ("group", self.capacity.group)):
+            if field is not None and field not in self.grid:
+                raise ValueError(f"capacity.{name} = {field!r} is not a grid field; grid fields: "
+                                 f"{', '.join(self.grid)}")
+        if self.capacity.group == self.capacity.x:
+            raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
+                             "group by another grid field")
         return self
 
     def seed_list(self) -> list[int]:

@@ -102,7 +102,7 @@ def capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str],
         rows = sorted(rows, key=lambda r: r[x])
         entry: dict[str, Any] = {}
         for th in thresholds:
-            entry[_label(th)] = capacity_of_curve([(r[x], r["success_rate"]) for r in rows], th)
+            entry[threshold_label(th)] = capacity_of_curve([(r[x], r["success_rate"]) for r in rows], th)
         out["series"][name] = entry
     names = list(out["series"])
     ref = reference if reference in out["series"] else (names[0] if names else None)
@@ -113,12 +113,66 @@ def capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str],
             break
         g = {}
         for th in thresholds:
-            mine, theirs = out["series"][name][_label(th)]["capacity"], out["series"][ref][_label(th)]["capacity"]
-            g[_label(th)] = {"ratio": mine / theirs if mine is not None and theirs else None,
+            mine, theirs = out["series"][name][threshold_label(th)]["capacity"], out["series"][ref][threshold_label(th)]["capacity"]
+            g[threshold_label(th)] = {"ratio": mine / theirs if mine is not None and theirs else None,
                              "difference": mine - theirs if mine is not None and theirs is not None else None}
         gains[name] = g
     out["gain_over_reference"] = gains
     return out
+
+
+def grouped_capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str], thresholds: list[float],
+                     reference: str | None, group: str) -> dict[str, Any]:
+    """``capacity`` within each value of the grid field ``group`` (e.g. each work cell), with
+    each series' invariant against the group's reference series (``invariant``) and whether the
+    reference itself misses tasks at the group's smallest load (``reference_limited``: the work
+    cell cannot keep up whatever the network does; left out of ``gain_shares``).
+
+    ``gain_shares``: per series and threshold, the gains over the reference of the groups that
+    are not reference-limited, sorted, to read "at least G on a share S of the cells"."""
+    inner = [f for f in series_fields if f != group]
+    groups: dict[Any, list[dict[str, Any]]] = defaultdict(list)
+    for row in summary:
+        groups[row[group]].append(row)
+    out: dict[str, Any] = {"group": group, "groups": {}}
+    shares: dict[str, dict[str, list[float | None]]] = defaultdict(lambda: defaultdict(list))
+    for value, rows in groups.items():
+        cap = capacity(rows, x, inner, thresholds, reference)
+        by_series: dict[str, list[dict[str, Any]]] = defaultdict(list)
+        for row in rows:
+            by_series[series_name(row, inner)].append(row)
+        ref_rows = sorted(by_series.get(cap["reference"] or "", []), key=lambda r: r[x])
+        cap["invariant"] = {name: invariant(sorted(series, key=lambda r: r[x]), ref_rows, x)
+                            for name, series in by_series.items()}
+        first = ref_rows[0]["success_rate"] if ref_rows else None
+        cap["reference_limited"] = first is not None and first < 1.0
+        if not cap["reference_limited"]:
+            for name, gains in cap["gain_over_reference"].items():
+                for label, g in gains.items():
+                    shares[name][label].append(g["ratio"])
+        out["groups"][str(value)] = cap
+    out["gain_shares"] = {name: {label: sorted(v, key=lambda r: (r is None, r)) for label, v in by_label.items()}
+                          for name, by_label in shares.items()}
+    return out
+
+
+def invariant(rows: list[dict[str, Any]], ref_rows: list[dict[str, Any]], x: str) -> dict[str, Any]:
+    """Where the reference series places every task (success 1 at a load), the series must too.
+    ``holds_upto``: the largest load up to which it holds at every such load; ``breaks_at``: the
+    first such load where the series places fewer (None: never, at the loads both have run);
+    ``loads``: how many loads were checked."""
+    mine = {r[x]: r["success_rate"] for r in rows}
+    holds_upto, breaks_at, checked = None, None, 0
+    for ref in ref_rows:
+        load, rate = ref[x], mine.get(ref[x])
+        if ref["success_rate"] is None or ref["success_rate"] < 1.0 or rate is None:
+            continue
+        checked += 1
+        if rate < 1.0:
+            breaks_at = load
+            break
+        holds_upto = load
+    return {"holds_upto": holds_upto, "breaks_at": breaks_at, "loads": checked}
 
 
 def capacity_text(entry: dict[str, Any]) -> str:
@@ -135,7 +189,7 @@ def gain_text(gain: dict[str, Any], entry: dict[str, Any]) -> str:
     return f"{'>= ' if entry.get('lower_bound') else ''}{gain['ratio']:.3g}x"
 
 
-def _label(threshold: float) -> str:
+def threshold_label(threshold: float) -> str:
     return f"success>={threshold * 100:g}%"
 
 

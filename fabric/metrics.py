@@ -37,6 +37,10 @@ PRB_UTILISATION = Gauge("cosim_netsim_prb_utilisation",
                         "Share of the PRBs of the last simulated second that carried data", ["direction"])
 TASKS = Counter("cosim_physics_tasks_total", "Pick-and-place tasks ended, by outcome", ["outcome"])
 LOOP_PDP = Gauge("cosim_loop_pdp", "Packet delivery probability the co-design policy set for a loop", ["loop"])
+QUEUEING_DELAY = Gauge("cosim_edge_queueing_delay_seconds",
+                       "Smoothed queueing delay of the frames the Edge receives (delay above each loop's smallest)")
+PDP_FILL = Gauge("cosim_edge_pdp_fill", "PDP every co-design loop may use while the radio cell has headroom")
+PDP_CAP = Gauge("cosim_edge_pdp_cap", "PDP no co-design loop may exceed (the congestion guard)")
 
 
 def observe_many(histogram: Any, value: float, count: int) -> None:

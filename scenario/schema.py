@@ -222,6 +222,31 @@ class PolicyConfig(Strict):
     control_latency_us: int = Field(
         default=1000, ge=0, le=100_000, description="`lower`: latency of the control message from "
         "the Edge's policy to the gNB's scheduler (both in the gNB site), us")
+    floor: bool = Field(
+        default=True, description="bound every co-design policy's PDP (all but `none`) by the safety "
+        "floor from the work cell's kinematics, the tracker's state and the uplink's delay and loss "
+        "(domain/safety_floor.py); false for ablations")
+    floor_risk: float = Field(
+        default=0.01, gt=0, lt=0.5, description="the floor's accepted chance that no useful frame "
+        "comes before one of its deadlines")
+    headroom: bool = Field(
+        default=True, description="let every co-design policy's loops (all but `none`) send at PDP 1 "
+        "while the radio cell has headroom, as the Edge sees it in the queueing delay of the frames "
+        "it receives (domain/congestion.py): traffic is saved only where that buys capacity; false "
+        "for ablations")
+    headroom_delay_ms: float = Field(
+        default=25.0, gt=0, le=1000, description="`headroom`: the cell has headroom while the smoothed "
+        "queueing delay of the frames at the Edge (delay above each loop's smallest) stays under "
+        "this, ms (under 20 up to the cell's capacity, where PDP 1 still places every task; "
+        "hundreds past it)")
+    guard: bool = Field(
+        default=True, description="cap every co-design policy's PDP (all but `none`) when the queueing "
+        "delay or the loss of the frames at the Edge says the radio cell is past capacity "
+        "(domain/congestion.py): past capacity the cap wins over the floor; false for ablations")
+    guard_delay_ms: float = Field(
+        default=60.0, gt=0, le=1000, description="`guard`: the cap falls while the smoothed queueing "
+        "delay of the frames at the Edge exceeds this, ms")
+    guard_min_pdp: float = Field(default=0.1, gt=0, le=1, description="`guard`: the cap never falls below this")
 
 
 class NetsimConfig(Strict):

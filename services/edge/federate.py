@@ -51,11 +51,15 @@ class EdgeFederate(Federate):
             raise self.unexpected(msg)
         b = msg.body
         key = (int(b["loop"]), int(b["frame_id"]))
-        part = self.partial.setdefault(key, {"n": int(b["n"]), "chunks": {}, "first_us": self.now,
-                                             "capture_us": int(b["capture_us"])})
+        part = self.partial.get(key)
+        if part is None:
+            part = self.partial[key] = {"n": int(b["n"]), "chunks": {}, "first_us": self.now,
+                                        "capture_us": int(b["capture_us"])}
+            self.codesign.monitor.started(*key, self.now)
         part["chunks"][int(b["idx"])] = msg.blob or b""
         if len(part["chunks"]) == part["n"]:
             del self.partial[key]
+            self.codesign.monitor.frame(key[0], part["capture_us"], self.now, key[1])
             data = b"".join(part["chunks"][i] for i in range(part["n"]))
             detections, ready = self.cpu.run("pose", self.now, self._estimate, data)
             self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],

@@ -143,10 +143,13 @@ class LoopsFederate(Federate):
         one slot as one message); the frame goes to pose estimation when the last is in."""
         got = lp.arrived.get(fid, 0) + count
         if got < n:
+            if fid not in lp.arrived:
+                self.codesign.monitor.started(lp.index, fid, self.now)
             lp.arrived[fid] = got
             return
         lp.arrived.pop(fid, None)
         capture_us, objects = lp.truth.pop(fid)
+        self.codesign.monitor.frame(lp.index, capture_us, self.now, fid)
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
             lp.arrived.pop(old, None)

@@ -1,6 +1,6 @@
-"""The co-design policies in whole runs: the learned policy runs at the Edge of the smoke scenario,
-and on cells drawn from the randomised family, neither ``heuristic`` nor ``learned`` costs a task
-that PDP 1 (``none``) places."""
+"""The co-design policies in whole runs: the learned policy runs at the Edge of the smoke scenario;
+on cells drawn from the randomised family and on a fast, dense one, neither ``heuristic`` nor
+``learned`` costs a task that PDP 1 (``none``) places; past capacity both degrade gracefully."""
 
 from __future__ import annotations
 
@@ -40,9 +40,42 @@ def test_learned_policy_runs_at_the_edge_of_the_smoke_scenario(tmp_path: Path) -
     k = run("configs/scenarios/smoke.yaml", ["policy.name=learned", *MODEL_TIMING_SETS], tmp_path)
     assert k["status"] == "completed" and k["policy"] == "learned"
     assert k["tasks"] >= 2 and k["tasks_placed"] == k["tasks"], k["task_outcomes"]
-    # It lowers the PDP where the control state allows: less traffic than every frame sent.
+    # Two loops leave the radio cell idle: with headroom every loop sends at PDP 1, as `none`.
     none = run("configs/scenarios/smoke.yaml", ["policy.name=none", *MODEL_TIMING_SETS], tmp_path)
-    assert k["ul_injected_mbps"] < 0.8 * none["ul_injected_mbps"]
+    assert k["ul_injected_mbps"] == pytest.approx(none["ul_injected_mbps"], rel=0.05)
+    # Without the headroom fill the policy's own PDP applies: less traffic than every frame sent.
+    bare = run("configs/scenarios/smoke.yaml", ["policy.name=learned", "policy.headroom=false",
+                                               *MODEL_TIMING_SETS], tmp_path)
+    assert bare["tasks_placed"] == bare["tasks"] and bare["ul_injected_mbps"] < 0.8 * none["ul_injected_mbps"]
+
+
+# A fast, dense work cell of the family (belt 0.4 m/s, a part every 3 s): PDP 1 places every task
+# up to 20 loops and collapses past them (25 % at 24 loops).
+FAST_DENSE = ["cell.belt_speed_m_s=0.4", "cell.object_period_s=3.0", "cell.object_jitter_s=0.3",
+              "detailed_loops=0", "duration_s=15", *MODEL_TIMING_SETS]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy", ["heuristic", "learned"])
+def test_below_capacity_co_design_places_every_task_pdp_1_places(policy: str, tmp_path: Path) -> None:
+    sets = [*FAST_DENSE, "loops=20"]
+    baseline = {t for t, o in outcomes(run("configs/scenarios/co_design.yaml", [*sets, "policy.name=none"],
+                                           tmp_path)).items() if o == "placed"}
+    got = outcomes(run("configs/scenarios/co_design.yaml", [*sets, f"policy.name={policy}"], tmp_path))
+    lost = sorted(t for t in baseline if got.get(t) in ("missed", "dropped"))
+    assert len(baseline) >= 90 and not lost, f"{policy} lost {lost} of the {len(baseline)} PDP 1 placed"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("policy", ["heuristic", "learned"])
+def test_past_capacity_success_degrades_and_traffic_stays_near_what_the_cell_delivers(
+        policy: str, tmp_path: Path) -> None:
+    """At 48 loops, over twice PDP 1's capacity (20), where PDP 1 places no task: the congestion
+    guard keeps the injected traffic near what the cell delivers and most tasks are placed."""
+    k = run("configs/scenarios/co_design.yaml", [*FAST_DENSE, "loops=48", f"policy.name={policy}"], tmp_path)
+    assert k["status"] == "completed"
+    assert k["task_success_rate"] >= 0.6, k["task_outcomes"]
+    assert k["ul_injected_mbps"] <= 1.3 * k["ul_throughput_mbps"], (k["ul_injected_mbps"], k["ul_throughput_mbps"])
 
 
 @pytest.mark.slow

@@ -17,6 +17,7 @@ import pytest
 
 from domain import cell_geometry as g
 from domain import policy_features as F
+from domain.congestion import LinkEstimate
 from domain.edge_side import CoDesign
 from domain.policy import DEFAULT_POLICY_MODEL, LoopState, make_policy
 from domain.tracker import Tracker
@@ -38,7 +39,7 @@ def state(tracks: list[dict], now_us: int = 0, belt: float = 0.2, **kw: object) 
 # ---- the observation ----------------------------------------------------------------------------
 def test_features_describe_the_most_urgent_parts_first() -> None:
     s = state([track(0, -0.5), track(1, 0.0), track(2, 0.9), track(3, -0.2, z=0.95)], now_us=100_000,
-              object_period_s=3.0, loops=10, last_spawn_us=50_000)
+              object_period_s=3.0, loops=10, last_spawn_us=50_000, link=LinkEstimate(cell_queueing_s=0.02))
     x = F.features(s)
     assert x.shape == (F.N_FEATURES,) and x.dtype == np.float32
     assert len(F.FEATURE_NAMES) == F.N_FEATURES == len(set(F.FEATURE_NAMES))
@@ -49,7 +50,7 @@ def test_features_describe_the_most_urgent_parts_first() -> None:
     assert obs["track0_window_pos"] == pytest.approx((x1 - g.PICK_X_RANGE[0]) / F.WINDOW_M, abs=1e-5)
     assert obs["track0_t_reach"] < 0 < obs["track1_t_reach"]  # inside the window / upstream
     assert obs["n_parts"] == 1.0 and obs["lifted"] == 1.0
-    assert obs["load"] == pytest.approx(10 / F.LOOPS_SCALE)
+    assert obs["queueing_delay"] == pytest.approx(0.02 / F.DELAY_SCALE_S)
     assert obs["next_part"] == pytest.approx((0.05 - 0.1 + 3.0) / 3.0, abs=1e-5)
     assert np.all(np.abs(x) <= F.OBS_LIMIT)
 
@@ -132,8 +133,21 @@ def test_model_trained_on_other_features_is_refused(tmp_path: Path) -> None:
     card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
     card["features"] = card["features"][:-1]
     model.with_suffix(".json").write_text(json.dumps(card))
-    with pytest.raises(ValueError, match="other features"):
+    with pytest.raises(ValueError, match="feature set"):
         make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+    # A model of the previous observation (no feature_set in its card: "v1") names both sets.
+    del card["feature_set"]
+    model.with_suffix(".json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match=f"'v1'.*'{F.FEATURE_SET}'"):
+        make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+
+
+def test_a_cell_outside_the_learned_policys_family_is_refused_naming_both() -> None:
+    card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
+    lo, hi = card["family"]["belt_speed_m_s"]
+    CoDesign(PolicyConfig(name="learned"), CellConfig(belt_speed_m_s=hi))
+    with pytest.raises(ValueError, match=rf"cell.belt_speed_m_s = 0.8 .*belt_speed_m_s {lo}-{hi}"):
+        CoDesign(PolicyConfig(name="learned"), CellConfig(belt_speed_m_s=0.8))
 
 
 # ---- the training environment -----------------------------------------------------------------
@@ -229,6 +243,8 @@ def test_an_ablation_applies_only_part_of_the_policys_qos() -> None:
 
     cfg = {"name": "fixed", "pdp": 0.5, "latency_budget_ms": 40}
     tracker = Tracker()
+    # The floor and the load control off: the ablation alone decides.
+    cfg.update(floor=False, headroom=False, guard=False)
     got = {c: CoDesign(PolicyConfig(**cfg, controls=c), 0.2).decide(1, 0, tracker, None)
            for c in ("both", "pdp", "budget")}
     assert (got["both"].pdp, got["both"].pdb_us) == (0.5, 40_000)

@@ -10,7 +10,14 @@ import pytest
 from experiments.points import expand
 from experiments.records import SweepDir, flatten_kpis, write_rows
 from experiments.spec import SweepError, load_spec, parse_spec
-from experiments.summary import capacity, capacity_of_curve, mean_ci, summarise, wilson
+from experiments.summary import (
+    capacity,
+    capacity_of_curve,
+    grouped_capacity,
+    mean_ci,
+    summarise,
+    wilson,
+)
 from interfaces.cli import main
 
 ROOT = Path(__file__).parents[2]
@@ -281,3 +288,33 @@ def test_a_capacity_no_load_failed_is_a_lower_bound() -> None:
     assert gain_text({"ratio": 2.0}, c) == ">= 2x"
     c = capacity_of_curve([(4, 1.0), (8, 0.5), (12, 1.0)], 1.0)
     assert not c["lower_bound"] and capacity_text(c) == "4 (passes again up to 12)"
+
+
+def cell_point(cell: str, loops: int, policy: str, tasks: int, placed: int) -> dict[str, Any]:
+    return {**point(loops, policy, 1, tasks, placed), "key": f"{cell}{loops}{policy}", "variant": cell}
+
+
+def test_grouped_capacity_reads_gains_and_the_invariant_within_each_cell() -> None:
+    curves = {  # cell -> policy -> placed of 10 tasks at loads 4, 8, 12, 16
+        "fast": {"none": [10, 10, 4, 1], "heuristic": [10, 9, 10, 10]},
+        "slow": {"none": [10, 10, 10, 2], "heuristic": [10, 10, 10, 10]},
+        "dense": {"none": [8, 8, 2, 1], "heuristic": [9, 9, 9, 9]},  # the arm cannot keep up
+    }
+    points = [cell_point(c, load, pol, 10, placed) for c, by in curves.items() for pol, ys in by.items()
+              for load, placed in zip((4, 8, 12, 16), ys, strict=True)]
+    grid = {"variant": list(curves), "policy.name": ["none", "heuristic"], "loops": [4, 8, 12, 16]}
+    rows = summarise(points, grid)
+    g = grouped_capacity(rows, "loops", ["variant", "policy.name"], [1.0], "policy.name=none", "variant")
+    fast, slow, dense = (g["groups"][c] for c in ("fast", "slow", "dense"))
+    assert fast["invariant"]["policy.name=heuristic"] == {"holds_upto": 4, "breaks_at": 8, "loads": 2}
+    assert slow["invariant"]["policy.name=heuristic"] == {"holds_upto": 12, "breaks_at": None, "loads": 3}
+    assert slow["gain_over_reference"]["policy.name=heuristic"]["success>=100%"]["ratio"] == pytest.approx(16 / 12)
+    assert slow["series"]["policy.name=heuristic"]["success>=100%"]["lower_bound"]
+    assert dense["reference_limited"] and not fast["reference_limited"]
+    # The arm-limited cell is left out of the shares; the fast cell's gain is 4 / 8.
+    assert g["gain_shares"]["policy.name=heuristic"]["success>=100%"] == [pytest.approx(0.5), pytest.approx(16 / 12)]
+
+
+def test_the_capacity_group_must_be_a_grid_field_other_than_the_load() -> None:
+    assert "capacity.group" in errors_of(spec(capacity={"group": "seed"}))[0][1]
+    assert "load axis" in errors_of(spec(capacity={"group": "loops"}))[0][1]

@@ -18,11 +18,15 @@ observation is ``domain.policy_features.features`` of the ``LoopState`` the Edge
 builds, as at run time. The action is (PDP level, latency budget level). The reward is
 
     r = -Cost + lambda * Perf
-    Cost = PDP x (1 - fraction of the injected bytes discarded late) x period_s
-           (seconds of PDP-1 camera traffic the loop puts on the air),
+    Cost = PDP x price(load / capacity) x (1 - fraction of the injected bytes discarded late)
+           x period_s (seconds of PDP-1 camera traffic the loop puts on the air, priced by
+           congestion: free under HEADROOM of the cell's capacity, then rising, 1 at capacity),
     Perf = +1 per part placed, -1 per part missed or dropped, when the task ends,
 
-so lambda is what one task is worth in seconds of full-rate camera traffic. An episode is
+so lambda is what one task is worth in seconds of full-rate camera traffic at capacity. The
+PDP is the action's, bounded by the safety floor and by the load control (PDP 1 while the
+cell has headroom, a cap past its capacity) as at the Edge (``floor`` and ``load_control``
+switch them off). An episode is
 ``episode_s`` of simulated time (truncated, never terminated).
 """
 
@@ -38,7 +42,7 @@ from gymnasium import spaces
 from domain.arm import SERVO_LAG_S
 from domain.codec import slot_after
 from domain.controller import PickController
-from domain.edge_side import CoDesign, update_tracks
+from domain.edge_side import CoDesign, bounded_pdp, default_limits, load_control, update_tracks
 from domain.frame_model import load_frame_model
 from domain.policy import LoopState, Qos
 from domain.policy_features import BUDGET_LEVELS_MS, N_FEATURES, OBS_LIMIT, PDP_LEVELS, features
@@ -54,6 +58,13 @@ ENV_ID = "cosim5g/PickLoop-v0"
 DEFAULT_LAMBDA = 10.0
 EPISODE_S = 30.0
 LOAD_TAU_S = 5.0  # averaging time of the mean-field PDP
+HEADROOM = 0.8  # share of the cell's capacity under which camera traffic costs nothing
+
+
+def congestion_price(utilisation: float) -> float:
+    """The price of a second of camera traffic at the cell's offered load ``utilisation`` (a share
+    of its capacity): nothing with headroom, then rising to 1 at capacity and beyond it."""
+    return max(0.0, (utilisation - HEADROOM) / (1.0 - HEADROOM))
 SLOT_US = 1000  # NR slot at 15 kHz: packets enter the UE buffer at slot boundaries
 
 
@@ -70,8 +81,11 @@ class PickLoopEnv(gym.Env):
 
     def __init__(self, lam: float = DEFAULT_LAMBDA, episode_s: float = EPISODE_S,
                  family: CellFamily = DEFAULT_FAMILY, cell: CellConfig | None = None,
-                 loops: int | None = None, network: NetworkModel | None = None) -> None:
+                 loops: int | None = None, network: NetworkModel | None = None,
+                 floor: bool = True, load_control: bool = True) -> None:
         super().__init__()
+        self.floor = floor
+        self.use_load_control = load_control
         self.lam = float(lam)
         self.episode_s = float(episode_s)
         self.family = family
@@ -102,6 +116,10 @@ class PickLoopEnv(gym.Env):
         self.ctl = PickController(sc.robot, cell.object_size_m, SERVO_LAG_S)
         self.tracker = Tracker((cell.belt_speed_m_s, 0.0, 0.0))
         self.codesign = CoDesign(PolicyConfig(), cell, loops, sc.camera.fps)
+        # The floor and the load control bound every policy's QoS here as at the Edge.
+        policy = PolicyConfig(name="fixed")
+        self.limits = default_limits(policy, sc) if self.floor else None
+        self.load = load_control(policy) if self.use_load_control else None
         self.rng = {name: rng(ep_seed, f"policy-env/{name}")
                     for name in ("keep", "net", "error", "compute", "phase")}
         self.last_frame_us: int | None = None
@@ -127,6 +145,10 @@ class PickLoopEnv(gym.Env):
 
     def step_qos(self, qos: Qos) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``qos`` for one policy period (any policy's QoS, not only the action set's)."""
+        queueing_s, loss = self.codesign.monitor.period(self.t_us)
+        if self.load is not None:
+            self.load.update(self.t_us, queueing_s, loss)
+        qos = Qos(bounded_pdp(self.loop_state(), qos.pdp, self.limits, self.load), qos.pdb_us)
         budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
         load = self.load_mbps()
         self.qos = qos
@@ -135,7 +157,7 @@ class PickLoopEnv(gym.Env):
         t_next = self.t_us + self.period_us
         self._run_until(t_next)
         dt_s = self.period_us / 1e6
-        cost = qos.pdp * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
+        cost = qos.pdp * congestion_price(load / self.net.capacity_mbps) * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
         self.pdp_bar += (qos.pdp - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
         ended = self.world.take_ended(self.world.t_us)
         placed = sum(1 for t in ended if t["outcome"] == "placed")
@@ -201,6 +223,8 @@ class PickLoopEnv(gym.Env):
             elif kind == "frame":
                 self._capture(t)
                 self._push(t + self.frame_us, 1, "frame", None)
+            elif kind == "arrival":
+                self.codesign.monitor.frame(0, payload, t)
             elif kind == "edge":
                 capture_us, positions = payload
                 tracks = update_tracks(self.tracker, capture_us, positions)
@@ -238,9 +262,11 @@ class PickLoopEnv(gym.Env):
         budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
         latency = self.net.frame(self.load_mbps(), budget_ms, self.rng["net"])
         if latency is None:
+            self.codesign.monitor.lost(0)
             return
         self.stats["frames_delivered"] += 1
         positions = self.frame_model.estimate(self.world.objects(0), self.rng["error"])
+        self._push(enter + latency, 2, "arrival", t)
         self._push(enter + latency + self._job_us("pose"), 2, "edge", (t, positions))
 
 

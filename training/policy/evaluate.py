@@ -28,9 +28,12 @@ def policy_for(name: str, model: str | None = None) -> Policy:
 
 
 def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISODES,
-                 seed0: int = EVAL_SEED, lam: float = DEFAULT_LAMBDA, **env_kw: Any) -> dict[str, Any]:
-    """Run ``decide`` on ``episodes`` cells; the pooled results and one row per episode."""
-    env = PickLoopEnv(lam=lam, **env_kw)
+                 seed0: int = EVAL_SEED, lam: float = DEFAULT_LAMBDA, bounded: bool = True,
+                 **env_kw: Any) -> dict[str, Any]:
+    """Run ``decide`` on ``episodes`` cells; the pooled results and one row per episode.
+    ``bounded``: the safety floor and the load control bound its PDP, as they bound every
+    co-design policy at the Edge (not PDP 1, the reference)."""
+    env = PickLoopEnv(lam=lam, floor=bounded, load_control=bounded, **env_kw)
     rows = []
     for i in range(episodes):
         _, info = env.reset(seed=seed0 + i)

@@ -56,6 +56,11 @@ class NetworkModel:
                 byte_discard=np.array([p["byte_discard"] for p in pts]),
                 latency_q_ms=np.array(lat, float), dl_latency_q_ms=np.array(dl, float))
         self._finite = sorted(b for b in self.columns if b is not None)
+        # The cell's capacity: the largest offered load, without a budget, that loses under 1 %
+        # of the frames (beyond it the queue grows without bound).
+        col = self.columns[None]
+        self.capacity_mbps = float(max(load for load, loss in zip(col.loads, col.frame_loss, strict=True)
+                                       if loss < 0.01))
 
     def column(self, budget_ms: float | None) -> Column:
         """The measured column nearest to ``budget_ms`` (None: no budget)."""

@@ -57,7 +57,8 @@ def evaluate_baselines(episodes: int) -> dict[str, dict[str, Any]]:
     from domain.policy import make_policy
     from training.policy.evaluate import run_episodes
 
-    return {name: run_episodes(make_policy(cfg).decide, episodes=episodes) for name, cfg in BASELINES.items()}
+    return {name: run_episodes(make_policy(cfg).decide, episodes=episodes,
+                               bounded=cfg.name != "none") for name, cfg in BASELINES.items()}
 
 
 def pareto_rows(baselines: dict[str, dict[str, Any]], learned: dict[float, dict[str, Any]]) -> list[dict[str, Any]]:

@@ -223,7 +223,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import stable_baselines3
     import torch
 
-    from training.policy.env import DEFAULT_LAMBDA, EPISODE_S
+    from training.policy.cells import DEFAULT_FAMILY
+    from training.policy.env import DEFAULT_LAMBDA, EPISODE_S, HEADROOM
     from training.policy.evaluate import EVAL_SEED, lost_to_policy, policy_for, run_episodes
 
     t_start = time.time()
@@ -249,20 +250,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "actor_parameters": int(sum(p.numel() for n, p in model.policy.named_parameters()
                                     if n.startswith(("mlp_extractor.policy_net", "action_net")))),
         "input": "obs", "output": "logits",
-        "features": list(F.FEATURE_NAMES), "pdp_levels": list(F.PDP_LEVELS),
+        "features": list(F.FEATURE_NAMES), "feature_set": F.FEATURE_SET, "pdp_levels": list(F.PDP_LEVELS),
         "budget_levels_ms": list(F.BUDGET_LEVELS_MS),
         "decision": "PDP: mean level under softmax(PDP logits) (the trained stochastic policy's "
                     "per-frame keep probability); budget: argmax of the budget logits "
                     "(domain/policy.py decode)",
+        "family": DEFAULT_FAMILY.card(),
         "lambda": lam,
         "reward": {"formula": "r = -Cost + lambda * Perf per 50 ms policy period",
-                   "cost": "PDP x (1 - fraction of injected bytes discarded late) x 0.05 s: seconds of "
-                           "PDP-1 camera traffic the loop puts on the air",
+                   "cost": "PDP x price(load / capacity) x (1 - fraction of injected bytes discarded "
+                           "late) x 0.05 s: seconds of PDP-1 camera traffic the loop puts on the air, "
+                           f"free under {HEADROOM:.0%} of the cell's capacity, price 1 at capacity",
+                   "bounds": "the action's PDP bounded by the safety floor and the load control "
+                             "(PDP 1 with headroom, a cap past capacity), as at the Edge",
                    "perf": "+1 per part placed, -1 per part missed or dropped, when its task ends"},
         "data": {"environment": "training/policy/env.py (cosim5g/PickLoop-v0)",
-                 "cells": "training/policy/cells.py DEFAULT_FAMILY: belt 0.1-0.5 m/s, period 2-6 s, "
-                          "jitter 0-30 % of the period, yaw spread 0-90 deg, size spread 0-2 cm, "
-                          "mass spread 0-0.1 kg, 1-40 loops in the radio cell",
+                 "cells": "training/policy/cells.py DEFAULT_FAMILY",
                  "network_table": f"training/{TABLE} (benchmarks/policy_network_table.py)",
                  "estimator_error": "domain/data/frame_model.json", "episode_s": episode_s,
                  "training_seed": args.seed, "evaluation_seeds": f"{EVAL_SEED}..",
@@ -283,7 +286,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     evaluation = {}
     for name in ("none", "heuristic", "learned") if args.baselines else ("learned",):
         pol = policy_for(name, str(onnx_path) if name == "learned" else None)
-        res = run_episodes(pol.decide, episodes=episodes, lam=lam, episode_s=episode_s)
+        res = run_episodes(pol.decide, episodes=episodes, lam=lam, episode_s=episode_s,
+                           bounded=name != "none")
         evaluation[name] = res
     for name, res in evaluation.items():
         if "none" in evaluation:

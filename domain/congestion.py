@@ -1,0 +1,160 @@
+"""What the Edge can know of its radio cell's load, from the frames it receives: each loop's
+uplink frame delay and loss, the cell's queueing delay, and the load control built on them:
+every loop gets PDP 1 while the cell has headroom, and a cap holds the injected traffic near
+what the cell delivers past its capacity (docs/policy.md, "Load control").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+# Smoothing of the per-loop estimates, per frame: about the last ten frames weigh.
+LOOP_ALPHA = 0.1
+# Smoothing of the cell-wide queueing delay and loss, per policy period: about the last half
+# second weighs.
+CELL_ALPHA = 0.3
+# A frame that started to arrive and is still incomplete this long after is counted lost (below
+# capacity a frame completes within tens of ms of its first packet).
+LOST_AFTER_US = 250_000
+# The cap also takes the cell as past capacity when more than this share of the frames that
+# started to arrive never complete (lost to a full buffer, a late discard or a failed HARQ
+# process): deep in overload few frames complete, and their delays alone say little.
+LOSS_TARGET = 0.2
+# Both levels fall by CUT when their delay target is exceeded, at most once per HOLD_US (the
+# delay answers a cut only after the queued frames have drained), and climb back by STEP a
+# policy period while the delay is under it: additive increase, multiplicative decrease.
+CUT = 0.85
+HOLD_US = 300_000
+STEP = 0.01
+
+
+@dataclass(frozen=True)
+class LinkEstimate:
+    """The uplink as one loop's Edge sees it: ``delay_s`` smoothed capture-to-arrival delay of
+    its frames (s), ``loss`` smoothed share of its frames that started to arrive and never
+    completed; ``cell_queueing_s`` and ``cell_loss`` the queueing delay (delay above each loop's
+    smallest, s) and loss over every loop of the Edge: the cell's load."""
+
+    delay_s: float = 0.0
+    loss: float = 0.0
+    cell_queueing_s: float = 0.0
+    cell_loss: float = 0.0
+
+
+IDLE_LINK = LinkEstimate()
+
+
+class UplinkMonitor:
+    """Smoothed uplink delay and loss of the frames an Edge receives, per loop and cell-wide.
+
+    The cell's load shows as queueing delay: a frame's delay above the smallest its loop has
+    seen (the base delay: capture, compression, an empty cell's transmission), as delay-based
+    congestion control (LEDBAT, RFC 6817) measures it. ``frame`` and ``lost`` are called as
+    frames complete or are given up; ``period`` once per policy period folds that period's
+    frames into the cell-wide figures (a period with no frame keeps them). A frame that
+    ``started`` to arrive and has not completed LOST_AFTER_US later is counted ``lost``."""
+
+    def __init__(self) -> None:
+        self.delay_s: dict[int, float] = {}
+        self.base_s: dict[int, float] = {}
+        self.loss: dict[int, float] = {}
+        self.cell_queueing_s = 0.0
+        self.cell_loss = 0.0
+        self._sum_s = 0.0
+        self._n = 0
+        self._lost = 0
+        self._partial: dict[tuple[int, int], int] = {}
+
+    def started(self, loop: int, frame_id: int, now_us: int) -> None:
+        """The first packet of frame ``frame_id`` of ``loop`` arrived at ``now_us``."""
+        self._partial.setdefault((loop, frame_id), now_us)
+
+    def frame(self, loop: int, capture_us: int, arrival_us: int, frame_id: int | None = None) -> None:
+        """Frame ``frame_id`` of ``loop`` captured at ``capture_us`` complete at the Edge at
+        ``arrival_us`` (a frame already counted lost counts as arrived too: it was late)."""
+        if frame_id is not None:
+            self._partial.pop((loop, frame_id), None)
+        d = max(0, arrival_us - capture_us) / 1e6
+        last = self.delay_s.get(loop, d)
+        self.delay_s[loop] = last + LOOP_ALPHA * (d - last)
+        self.loss[loop] = self.loss.get(loop, 0.0) * (1 - LOOP_ALPHA)
+        base = min(self.base_s.get(loop, d), d)
+        self.base_s[loop] = base
+        self._sum_s += d - base
+        self._n += 1
+
+    def lost(self, loop: int) -> None:
+        """A frame of ``loop`` that started to arrive and never completed."""
+        self.loss[loop] = self.loss.get(loop, 0.0) + LOOP_ALPHA * (1.0 - self.loss.get(loop, 0.0))
+        self._lost += 1
+
+    def period(self, now_us: int) -> tuple[float, float]:
+        """Fold the frames since the last call into the cell's queueing delay (s) and loss."""
+        for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
+            del self._partial[key]
+            self.lost(key[0])
+        if self._n:
+            self.cell_queueing_s += CELL_ALPHA * (self._sum_s / self._n - self.cell_queueing_s)
+        if self._n or self._lost:
+            self.cell_loss += CELL_ALPHA * (self._lost / (self._n + self._lost) - self.cell_loss)
+        self._sum_s, self._n, self._lost = 0.0, 0, 0
+        return self.cell_queueing_s, self.cell_loss
+
+    def estimate(self, loop: int) -> LinkEstimate:
+        return LinkEstimate(self.delay_s.get(loop, 0.0), self.loss.get(loop, 0.0), self.cell_queueing_s,
+                            self.cell_loss)
+
+
+class Level:
+    """A PDP level in [low, 1] steered by a delay target: cut by CUT when the cell's queueing
+    delay exceeds ``target_s`` (or, with ``loss_target``, its loss exceeds that), at most once
+    per HOLD_US; raised by STEP a period otherwise."""
+
+    def __init__(self, target_s: float, low: float, loss_target: float = 1.0) -> None:
+        self.target_s = target_s
+        self.low = low
+        self.loss_target = loss_target
+        self.value = 1.0
+        self._last_cut_us: int | None = None
+
+    def update(self, now_us: int, queueing_s: float, loss: float) -> float:
+        if queueing_s > self.target_s or loss > self.loss_target:
+            if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
+                self.value = max(self.low, self.value * CUT)
+                self._last_cut_us = now_us
+        else:
+            self.value = min(1.0, self.value + STEP)
+        return self.value
+
+
+class LoadControl:
+    """The cell-wide part of every co-design policy's PDP (docs/policy.md, "Load control"):
+
+    - ``fill``: the PDP every loop may use for free, 1 while the cell's queueing delay stays under
+      ``headroom_s`` (traffic costs nothing while the cell has headroom), falling as the cell
+      nears saturation so that the policy's own PDP takes over (None: off);
+    - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` or the
+      frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
+      delivers instead of every queue growing (None: off); never under ``min_cap``.
+
+    Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
+    co-design at all."""
+
+    def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
+        self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
+        self._cap = Level(cap_s, min_cap, LOSS_TARGET) if cap_s is not None else None
+
+    @property
+    def fill(self) -> float:
+        return self._fill.value if self._fill is not None else 0.0
+
+    @property
+    def cap(self) -> float:
+        return self._cap.value if self._cap is not None else 1.0
+
+    def update(self, now_us: int, queueing_s: float, loss: float) -> None:
+        """One policy period whose smoothed queueing delay is ``queueing_s`` and loss ``loss``."""
+        if self._fill is not None:
+            self._fill.update(now_us, queueing_s, 1.0)
+        if self._cap is not None:
+            self._cap.update(now_us, queueing_s, loss)

@@ -1,0 +1,85 @@
+"""The safety floor every co-design policy's PDP is bounded by: the PDP below which, from the
+work cell's kinematics, the tracker's state and the uplink's current delay and loss, a new part
+would not be seen in time, a tracked part's estimate would be too old when the arm works on it,
+or its track would be lost (docs/policy.md, "Safety floor").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from domain import cell_geometry as g
+from domain import policy_features as F
+from domain.policy import LoopState, pdp_for_deadline, step_up
+from domain.tracker import ACCEL_SD, GATE_M
+
+# The controller's alignment to sealed grip (its GRASP_TIME_S): a part must stay this long in
+# the pick window after the arm starts on it.
+PICK_TIME_S = 0.5
+# How long before a part reaches the pick window the arm may start working on it (it waits at
+# the window's entry): from then on its estimate must stay fresh.
+LEAD_S = 1.0
+SD_LIMIT_M = GATE_M / 2  # a prediction this uncertain may match the wrong part
+# Share of the time a part can be picked in (from its landing) within which it must be seen: the
+# sooner the arm knows it, the sooner it can start, and on a dense belt the next part waits.
+DETECT_SHARE = 0.25
+# Share of the robot's estimate age limit an estimate may reach while the arm works on a part.
+FRESH_SHARE = 1.0
+
+
+@dataclass(frozen=True)
+class FloorLimits:
+    """What the floor protects. ``max_estimate_age_s``: the robot holds back on older estimates
+    (RobotConfig.max_estimate_age_ms); ``miss_rate``: share of visible parts the estimator misses
+    (the frame model's); ``risk``: accepted chance that no useful frame comes before a deadline;
+    ``period_s``: the policy period (a PDP holds that long before the next decision)."""
+
+    max_estimate_age_s: float
+    miss_rate: float
+    risk: float
+    period_s: float
+
+
+def next_part_earliest_us(state: LoopState) -> int | None:
+    """The earliest time the next part can land: the newest part's landing plus the object period
+    less its jitter (spawn times are drawn uniformly within +- jitter of the plan); None when
+    unknown."""
+    if state.last_spawn_us is None or state.object_period_s is None:
+        return None
+    return state.last_spawn_us + int((state.object_period_s - state.object_jitter_s) * 1e6)
+
+
+def safety_floor(state: LoopState, limits: FloorLimits) -> float:
+    """The floor on the PDP of the loop in ``state``, rounded up to PDP_STEP.
+
+    - every part the arm may work on within LEAD_S (and inside the window): a useful frame
+      before its estimate's age would pass ``max_estimate_age_s``, counting the uplink delay and
+      the policy period the PDP holds;
+    - every tracked part: a useful frame before the tracker's prediction of it (its sd grown by
+      the tracker's motion model) leaves half the association gate, or the track is lost;
+    - when a new part may have landed (not before ``next_part_earliest_us``): a useful frame
+      within half the time the arm has to pick a part from its landing (to the last grasp start
+      in the window), less the uplink delay."""
+    link = state.link
+    useful = (1.0 - min(link.loss, 0.9)) * (1.0 - limits.miss_rate)
+    fps, risk = state.fps, limits.risk
+    delay_s = link.delay_s
+    v = max(state.belt_speed_m_s, F.MIN_SPEED_M_S)
+    x0, x1 = g.PICK_X_RANGE
+    floor = 0.0
+    parts = F.belt_tracks(state)
+    for x, tr in parts:
+        age_s = max(0.0, (state.now_us - tr["t_us"]) / 1e6)
+        if (x0 - x) / v <= LEAD_S:
+            fresh_s = limits.max_estimate_age_s * FRESH_SHARE - delay_s - limits.period_s
+            floor = max(floor, pdp_for_deadline(fresh_s, fps, useful, risk))
+        gate_s = math.sqrt(2 * max(0.0, SD_LIMIT_M - tr.get("sd", 0.0)) / ACCEL_SD) - age_s - delay_s
+        floor = max(floor, pdp_for_deadline(gate_s, fps, useful, risk))
+    earliest = next_part_earliest_us(state)
+    if earliest is None or state.now_us >= earliest:
+        window_s = (x1 - x0) / v
+        reach_s = max(0.0, (x0 - g.SPAWN_X) / v)
+        deadline = (reach_s + window_s - PICK_TIME_S) * DETECT_SHARE - delay_s - limits.period_s
+        floor = max(floor, pdp_for_deadline(deadline, fps, useful, risk))
+    return step_up(floor)
