@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -44,15 +45,33 @@ class SpecModel(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+# A spec is counted before anything is expanded: an axis holds at most MAX_AXIS_VALUES values and
+# a spec at most MAX_SPEC_POINTS points (grid combinations x seeds); a coordinator may allow fewer.
+MAX_AXIS_VALUES = 1000
+MAX_SPEC_POINTS = 100_000
+
+
 class Range(SpecModel):
     """An inclusive arithmetic range of grid values."""
 
-    start: float = Field(description="first value")
-    stop: float = Field(description="last value (included when the steps land on it)")
-    step: float = Field(gt=0, description="increment, > 0")
+    start: float = Field(allow_inf_nan=False, description="first value")
+    stop: float = Field(allow_inf_nan=False, description="last value (included when the steps land on it)")
+    step: float = Field(gt=0, allow_inf_nan=False, description="increment, > 0")
+
+    @model_validator(mode="after")
+    def _bounded(self) -> Range:
+        n = self.count()
+        if n > MAX_AXIS_VALUES:
+            raise ValueError(f"{self.start:g}..{self.stop:g} step {self.step:g} gives {n:.3g} values; "
+                             f"an axis holds at most {MAX_AXIS_VALUES}")
+        return self
+
+    def count(self) -> float:
+        """How many values the range holds (a float: it may be astronomically many)."""
+        return max(0.0, math.floor((self.stop - self.start) / self.step + 1e-9) + 1.0)
 
     def values(self) -> list[int | float]:
-        n = int((self.stop - self.start) / self.step + 1e-9) + 1
+        n = int(self.count())
         out = [self.start + i * self.step for i in range(max(n, 0))]
         if all(float(v).is_integer() for v in (self.start, self.step)):
             return [int(v) for v in out]
@@ -106,7 +125,8 @@ class SweepSpec(SpecModel):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]*$", description="sweep name (lower case, digits, _ and -)")
     base: str = Field(description="base scenario: a name in configs/scenarios or a path to a YAML file")
     set: dict[str, Any] = Field(default_factory=dict, description="dotted field -> value, fixed for every point")
-    grid: dict[str, list[Any] | Range] = Field(min_length=1, description="dotted field -> values to sweep")
+    grid: dict[str, list[Any] | Range] = Field(min_length=1, max_length=16,
+                                                description="dotted field -> values to sweep")
     variants: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="name -> {dotted field: value}: series that differ in "
         "several fields, swept as the grid field `variant`")
@@ -152,6 +172,27 @@ class SweepSpec(SpecModel):
                 raise ValueError(f"grid.variant: {', '.join(map(repr, unknown))} not in variants "
                                  f"({', '.join(self.variants)})")
         return self
+
+    @model_validator(mode="after")
+    def _bounded(self) -> SweepSpec:
+        for path, values in self.grid.items():
+            if isinstance(values, list) and len(values) > MAX_AXIS_VALUES:
+                raise ValueError(f"grid.{path}: {len(values)} values; an axis holds at most {MAX_AXIS_VALUES}")
+        if self.points() > MAX_SPEC_POINTS:
+            raise ValueError(f"{self.points()} points (grid combinations x seeds); a spec holds at most "
+                             f"{MAX_SPEC_POINTS}")
+        return self
+
+    def points(self) -> int:
+        """Grid combinations x seeds (the most seeds ``repeat_until`` may add), counted without
+        expanding the grid."""
+        seeds = len(self.seed_list()) if isinstance(self.seeds, list) else self.seeds
+        if self.repeat_until is not None:
+            seeds = max(seeds, self.repeat_until.max_seeds)
+        combos = 1
+        for values in self.grid.values():
+            combos *= int(values.count()) if isinstance(values, Range) else len(values)
+        return combos * seeds
 
     @model_validator(mode="after")
     def _capacity_axis(self) -> SweepSpec:
@@ -225,10 +266,20 @@ def base_path(base: str, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool 
                                + (" nor a file" if allow_paths else ""))])
 
 
+# Errors of a grid axis's union (a list, or a Range) that only say the value is not the other kind.
+UNION_BRANCH_ERRORS = ("list_type", "model_type", "dict_type", "model_attributes_type")
+
+
 def _format(exc: ValidationError) -> list[tuple[str, str]]:
     out = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith(("list[", "Range"))) or "(sweep)"
+    errors = exc.errors()
+    # A grid axis is a list or a range: where the other branch says more of the same field than
+    # "not my kind", keep only that.
+    said = {e["loc"][:2] for e in errors if e["type"] not in UNION_BRANCH_ERRORS}
+    errors = [e for e in errors if e["type"] not in UNION_BRANCH_ERRORS or e["loc"][:2] not in said]
+    for err in errors:
+        loc = ".".join(str(p) for p in err["loc"]
+                       if not str(p).startswith(("list[", "Range", "function-after["))) or "(sweep)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             section: Any = SweepSpec
@@ -241,14 +292,20 @@ def _format(exc: ValidationError) -> list[tuple[str, str]]:
     return out
 
 
-def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> SweepSpec:
-    """Validate a spec mapping, its grid paths, and every point's scenario; or raise SweepError."""
+def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True,
+               max_points: tuple[int, str] | None = None) -> SweepSpec:
+    """Validate a spec mapping, its grid paths, and every point's scenario; or raise SweepError.
+    ``max_points`` (this caller's limit on grid combinations x seeds, and the setting's name) is
+    checked before any point is: a spec too large to run costs nothing to refuse."""
     if not isinstance(data, dict):
         raise SweepError([("(sweep)", f"expected a mapping of fields, got {type(data).__name__}")])
     try:
         spec = SweepSpec.model_validate(data)
     except ValidationError as exc:
         raise SweepError(_format(exc)) from None
+    if max_points is not None and spec.points() > max_points[0]:
+        raise SweepError([("grid", f"{spec.points()} points (grid combinations x seeds), more than this "
+                                   f"coordinator runs in one sweep: {max_points[1]} = {max_points[0]}")])
     errors: list[tuple[str, str]] = []
     sections = [("set", list(spec.set)), ("grid", [p for p in spec.grid if p != VARIANT])]
     sections += [(f"variants.{name}", list(fields)) for name, fields in spec.variants.items()]

@@ -218,18 +218,9 @@ def scenario_limit_errors(sc: Scenario, limits: ApiLimits) -> list[tuple[str, st
 
 
 def sweep_limit_errors(spec: SweepSpec, scenarios_dir: Path, limits: ApiLimits) -> list[tuple[str, str]]:
-    """(field, message) for a sweep with too many points, or a point beyond the run limits."""
-    seeds = len(spec.seed_list())
-    if spec.repeat_until is not None:
-        seeds = max(seeds, spec.repeat_until.max_seeds)
-    combos = 1
-    for values in spec.grid_values().values():
-        combos *= len(values)
+    """(field, message) for a point beyond the run limits (the number of points is refused
+    earlier, before any point is validated: ``parse_spec``'s ``max_points``)."""
     errors = []
-    if combos * seeds > limits.max_sweep_points:
-        errors.append(("grid", f"{combos} grid combinations x {seeds} seeds = {combos * seeds} points, more than "
-                               f"this coordinator runs in one sweep: {limit_source('max_sweep_points')} = "
-                               f"{limits.max_sweep_points}"))
     # Only duration_s and watchdog.run_timeout_s matter here, and each is either fixed (base and
     # set), one grid axis, or set by variants: checking the base, each value of that axis and
     # each variant's value covers every point.
@@ -341,7 +332,8 @@ def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_ro
         coord.check_queue()
 
     add_sweep_routes(app, sweeps, sweeps_dir, scenarios_dir, check_spec=check_spec,
-                     recent_runs=lambda: coord.store.list(limit=20))
+                     recent_runs=lambda: coord.store.list(limit=20),
+                     max_points=(limits.max_sweep_points, limit_source("max_sweep_points")))
 
     @app.exception_handler(ScenarioError)
     async def invalid_scenario(_: Any, exc: ScenarioError) -> JSONResponse:

@@ -40,7 +40,8 @@ class SweepRequest(BaseModel):
     spec: str | dict[str, Any] = Field(description="name of a file in configs/sweeps/, or the spec itself")
 
 
-def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path) -> SweepSpec:
+def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path,
+                 max_points: tuple[int, str] | None = None) -> SweepSpec:
     if isinstance(req.spec, str):
         known = shipped_names(sweeps_dir)
         if req.spec not in known:  # checked against the list: a name never becomes a path
@@ -48,7 +49,7 @@ def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path) -> Sw
         data = yaml.safe_load((sweeps_dir / f"{req.spec}.yaml").read_text())
     else:
         data = req.spec
-    return parse_spec(data, scenarios_dir, allow_paths=False)
+    return parse_spec(data, scenarios_dir, allow_paths=False, max_points=max_points)
 
 
 def wants_html(request: Request) -> bool:
@@ -60,8 +61,10 @@ def wants_html(request: Request) -> bool:
 
 
 def add_sweep_routes(app: FastAPI, service: SweepService, sweeps_dir: Path, scenarios_dir: Path,
-                     check_spec: Any = None, recent_runs: Any = None) -> None:
-    """``check_spec(spec)`` may refuse a spec (limits) by raising HTTPException."""
+                     check_spec: Any = None, recent_runs: Any = None,
+                     max_points: tuple[int, str] | None = None) -> None:
+    """``check_spec(spec)`` may refuse a spec (limits) by raising HTTPException; ``max_points``
+    (limit, setting) refuses a spec with more points before any point is validated."""
 
     def summary(sid: str) -> dict[str, Any]:
         d = service.describe(sid)
@@ -86,7 +89,7 @@ def add_sweep_routes(app: FastAPI, service: SweepService, sweeps_dir: Path, scen
 
     @app.post("/sweeps", status_code=201)
     def start_sweep(req: SweepRequest) -> dict[str, Any]:
-        spec = resolve_spec(req, sweeps_dir, scenarios_dir)
+        spec = resolve_spec(req, sweeps_dir, scenarios_dir, max_points)
         if check_spec is not None:
             check_spec(spec, service)
         out = service.submit(spec)

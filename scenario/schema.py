@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import math
+import reprlib
 from pathlib import Path
 from typing import Any, Literal
 
@@ -429,16 +430,50 @@ def _format_validation(exc: ValidationError) -> list[tuple[str, str]]:
             allowed = _allowed_fields(err["loc"][:-1])
             msg = f"unknown field; allowed here: {', '.join(allowed)}" if allowed else "unknown field"
         elif err["loc"] and "input" in err and err["type"] != "missing":
-            msg = f"{msg} (given: {err['input']!r:.60})"
+            msg = f"{msg} (given: {_given(err['input'])})"
         out.append((loc, msg))
     return out
 
 
+# An override is a dotted field and a short YAML value; anything longer is refused unread.
+MAX_OVERRIDE_CHARS = 4096
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """Safe YAML without anchors and aliases: a few bytes of aliases expand into gigabytes
+    wherever the value is walked (validated, printed), so a value from a user has none."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.events.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "aliases (*name) are not allowed",
+                                              self.peek_event().start_mark)
+        return super().compose_node(parent, index)
+
+
+def parse_value(raw: str, field: str) -> Any:
+    """The YAML value ``raw`` given for ``field`` (no aliases), or a ScenarioError naming it."""
+    try:
+        return yaml.load(raw, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader without aliases
+    except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ScenarioError([(field, f"not a YAML value ({problem}): {raw[:40]!r}")]) from None
+
+
+def _given(value: Any) -> str:
+    """A short repr of a user's value, built without walking all of it."""
+    short = reprlib.Repr()
+    short.maxlevel, short.maxlist, short.maxdict, short.maxstring, short.maxother = 2, 4, 4, 40, 40
+    return short.repr(value)[:60]
+
+
 def _apply_override(data: dict[str, Any], assignment: str) -> None:
+    if len(assignment) > MAX_OVERRIDE_CHARS:
+        raise ScenarioError([(assignment[:40] + "...", f"an override is at most {MAX_OVERRIDE_CHARS} "
+                                                       f"characters, got {len(assignment)}")])
     if "=" not in assignment:
         raise ScenarioError([(assignment, "override must look like field.path=value")])
     path, raw = assignment.split("=", 1)
-    value = yaml.safe_load(raw) if raw != "" else ""
+    value = parse_value(raw, path.strip()) if raw != "" else ""
     node = data
     default: Any = Scenario().model_dump(mode="json")
     parts = path.strip().split(".")

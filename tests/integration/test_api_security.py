@@ -329,3 +329,47 @@ def test_routes_are_api_routes_so_the_dependency_reaches_them(client: Client) ->
     app = client.app
     assert isinstance(app, FastAPI)
     assert all(isinstance(r, APIRoute) for r in app.routes), [r for r in app.routes if not isinstance(r, APIRoute)]
+
+
+def alias_bomb(levels: int = 8) -> str:
+    """A 400-byte YAML value whose aliases expand to 9^levels items wherever it is walked."""
+    parts = ["a0: &a0 [" + ",".join(["lol"] * 9) + "]"]
+    parts += [f"a{i}: &a{i} [" + ",".join([f"*a{i - 1}"] * 9) + "]" for i in range(1, levels)]
+    return "{" + ", ".join(parts) + "}"
+
+
+def test_bad_yaml_in_overrides_is_a_quick_422_naming_the_field(tmp_path: Path) -> None:
+    app, held = make_app(tmp_path)
+    with serving(app) as c:
+        for value, says in [(alias_bomb(), "aliases"), ("[x", "not a YAML value"), ("*undefined", "aliases"),
+                            ("!!python/object:os.system ls", "not a YAML value")]:
+            t0 = time.monotonic()
+            r = c.post("/runs", json={"scenario": "smoke", "overrides": [f"name={value}"]}, headers=AUTH)
+            assert r.status_code == 422, (value[:30], r.status_code, r.text[:200])
+            [err] = r.json()["detail"]
+            assert err["field"] == "name" and says in err["message"]
+            assert time.monotonic() - t0 < 5.0  # the bomb took 4 s and 500 MB to answer before
+        r = c.post("/runs", json={"scenario": "smoke", "overrides": ["name=" + "x" * 5000]}, headers=AUTH)
+        assert r.status_code == 422 and "at most 4096 characters" in r.json()["detail"][0]["message"]
+    assert held.started == []
+
+
+def test_a_huge_or_unbounded_grid_is_refused_before_it_is_expanded(tmp_path: Path) -> None:
+    app, held = make_app(tmp_path, max_sweep_points=100)
+    base = {"name": "s", "base": "baseline", "set": {"duration_s": 5, "detailed_loops": 0}}
+    with serving(app) as c:
+        t0 = time.monotonic()
+        # 10^6 points answered 422 only after every combination was validated (minutes) before.
+        spec = {**base, "grid": {"loops": {"start": 1, "stop": 1000, "step": 1},
+                                 "seed": {"start": 1, "stop": 1000, "step": 1}}}
+        r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)
+        assert r.status_code == 422 and "1000000 points" in r.json()["detail"][0]["message"], r.text
+        # 10^9 values on one axis exhausted memory before anything was checked.
+        spec = {**base, "grid": {"loops": {"start": 1, "stop": 1e9, "step": 1}}}
+        r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)
+        assert r.status_code == 422 and "at most 1000" in r.json()["detail"][0]["message"], r.text
+        for bad in ({"start": 1, "stop": 2, "step": 1e-308}, {"start": "NaN", "stop": 2, "step": 1}):
+            r = c.post("/sweeps", json={"spec": {**base, "grid": {"loops": bad}}}, headers=AUTH)
+            assert r.status_code == 422, (bad, r.status_code, r.text[:200])
+        assert time.monotonic() - t0 < 10.0
+    assert held.started == []
