@@ -20,7 +20,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
-	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload soak chaos native \
+	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
@@ -97,6 +97,10 @@ reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the tra
 
 reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
 	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
+
+reproduce-sensitivity: $(BIN)/cosim5g native ## task success vs a fixed extra uplink latency (0-200 ms) x frame loss (0-90%), three work cells, abstract then detailed loops
+	$(BIN)/cosim5g sweep configs/sweeps/sensitivity.yaml --jobs $(JOBS)
+	$(BIN)/cosim5g sweep configs/sweeps/sensitivity_detailed.yaml --jobs 1
 
 images: setup $(BIN)/cosim5g native ## build the runtime and Prometheus images without a registry (see docs/docker.md)
 	PYTHON=$(PYTHON) bash images/build.sh

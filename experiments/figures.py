@@ -147,12 +147,13 @@ def gain_figure(grouped: dict[str, Any], label: str) -> Figure:
             ax.text(j, 0.05, "reference\nbelow 100%", ha="center", va="bottom", fontsize=7, rotation=90)
     ax.axhline(1.0, color="grey", lw=0.8)
     ax.set_xticks(range(len(groups)), groups, rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel(f"capacity gain over {ref}")
-    ax.set_title(f"Capacity gain per {grouped['group']} ({label}; hatched: at least)")
+    ax.set_ylabel("capacity gain over the reference")
+    ax.set_title(f"Capacity gain per {grouped['group']} over {ref}\n({label}; hatched: at least, no load swept failed)",
+                 fontsize=9)
     ax.grid(alpha=0.3, axis="y")
     handles, labels = ax.get_legend_handles_labels()
     if handles:
-        ax.legend(handles, labels, loc="upper left", fontsize=8)
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(3, len(labels)), fontsize=8)
     return fig
 
 

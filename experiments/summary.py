@@ -148,6 +148,8 @@ def grouped_capacity(summary: list[dict[str, Any]], x: str, series_fields: list[
         cap["reference_limited"] = first is not None and first < 1.0
         if not cap["reference_limited"]:
             for name, gains in cap["gain_over_reference"].items():
+                if name == cap["reference"]:
+                    continue
                 for label, g in gains.items():
                     shares[name][label].append(g["ratio"])
         out["groups"][str(value)] = cap
