@@ -42,7 +42,7 @@ from gymnasium import spaces
 from domain.arm import SERVO_LAG_S
 from domain.codec import slot_after
 from domain.controller import PickController
-from domain.edge_side import CoDesign, bounded_pdp, default_limits, load_control, update_tracks
+from domain.edge_side import CoDesign, default_limits, update_tracks
 from domain.frame_model import load_frame_model
 from domain.policy import LoopState, Qos
 from domain.policy_features import BUDGET_LEVELS_MS, N_FEATURES, OBS_LIMIT, PDP_LEVELS, features
@@ -58,6 +58,7 @@ ENV_ID = "cosim5g/PickLoop-v0"
 DEFAULT_LAMBDA = 10.0
 EPISODE_S = 30.0
 LOAD_TAU_S = 5.0  # averaging time of the mean-field PDP
+SLOT_US = 1000  # NR slot at 15 kHz: packets enter the UE buffer at slot boundaries
 HEADROOM = 0.8  # share of the cell's capacity under which camera traffic costs nothing
 
 
@@ -65,7 +66,6 @@ def congestion_price(utilisation: float) -> float:
     """The price of a second of camera traffic at the cell's offered load ``utilisation`` (a share
     of its capacity): nothing with headroom, then rising to 1 at capacity and beyond it."""
     return max(0.0, (utilisation - HEADROOM) / (1.0 - HEADROOM))
-SLOT_US = 1000  # NR slot at 15 kHz: packets enter the UE buffer at slot boundaries
 
 
 def action_qos(action: Any) -> Qos:
@@ -115,11 +115,11 @@ class PickLoopEnv(gym.Env):
         self.frame_us = sc.frame_period_us
         self.ctl = PickController(sc.robot, cell.object_size_m, SERVO_LAG_S)
         self.tracker = Tracker((cell.belt_speed_m_s, 0.0, 0.0))
-        self.codesign = CoDesign(PolicyConfig(), cell, loops, sc.camera.fps)
-        # The floor and the load control bound every policy's QoS here as at the Edge.
-        policy = PolicyConfig(name="fixed")
-        self.limits = default_limits(policy, sc) if self.floor else None
-        self.load = load_control(policy) if self.use_load_control else None
+        # The floor and the load control bound every policy's QoS here as at the Edge (the
+        # policy named here is not consulted: the action, or a given QoS, is what is bounded).
+        bounds = PolicyConfig(name="fixed", floor=self.floor, headroom=self.use_load_control,
+                              guard=self.use_load_control)
+        self.codesign = CoDesign(bounds, cell, loops, sc.camera.fps, default_limits(bounds, sc))
         self.rng = {name: rng(ep_seed, f"policy-env/{name}")
                     for name in ("keep", "net", "error", "compute", "phase")}
         self.last_frame_us: int | None = None
@@ -145,10 +145,8 @@ class PickLoopEnv(gym.Env):
 
     def step_qos(self, qos: Qos) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``qos`` for one policy period (any policy's QoS, not only the action set's)."""
-        queueing_s, loss = self.codesign.monitor.period(self.t_us)
-        if self.load is not None:
-            self.load.update(self.t_us, queueing_s, loss)
-        qos = Qos(bounded_pdp(self.loop_state(), qos.pdp, self.limits, self.load), qos.pdb_us)
+        self.codesign.period(self.t_us)
+        qos = self.codesign.apply(self.loop_state(), qos)
         budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
         load = self.load_mbps()
         self.qos = qos
@@ -157,7 +155,8 @@ class PickLoopEnv(gym.Env):
         t_next = self.t_us + self.period_us
         self._run_until(t_next)
         dt_s = self.period_us / 1e6
-        cost = qos.pdp * congestion_price(load / self.net.capacity_mbps) * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
+        price = congestion_price(load / self.net.capacity_mbps)
+        cost = qos.pdp * price * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
         self.pdp_bar += (qos.pdp - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
         ended = self.world.take_ended(self.world.t_us)
         placed = sum(1 for t in ended if t["outcome"] == "placed")
