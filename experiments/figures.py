@@ -6,7 +6,8 @@
 - Fig. 6: CDF of uplink IP packet latency at a few loads per series, and its tail (1 - CDF) on a
   log scale;
 - Fig. 7 (sweeps grouped by condition, e.g. work cell): each series' capacity gain over the
-  reference per group, reference-limited groups marked.
+  reference per group, reference-limited groups marked;
+- Fig. 8 (``figures.map_y``): the task success rate over two grid fields, a panel per group.
 """
 
 from __future__ import annotations
@@ -154,6 +155,34 @@ def gain_figure(grouped: dict[str, Any], label: str) -> Figure:
     handles, labels = ax.get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(3, len(labels)), fontsize=8)
+    return fig
+
+
+def map_figure(summary: list[dict[str, Any]], x: str, y: str, group: str | None) -> Figure:
+    """Fig. 8: the task success rate over grid fields ``x`` and ``y`` as a heat map, one panel per
+    value of ``group`` (or one panel); each cell says placed / ended tasks."""
+    groups = list(dict.fromkeys(r[group] for r in summary)) if group else [None]
+    fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups) + 1, 3.8), layout="constrained",
+                             squeeze=False)
+    image = None
+    for ax, g in zip(axes[0], groups, strict=True):
+        rows = [r for r in summary if group is None or r[group] == g]
+        xs = sorted({r[x] for r in rows})
+        ys = sorted({r[y] for r in rows})
+        grid = np.full((len(ys), len(xs)), np.nan)
+        for r in rows:
+            if r["success_rate"] is not None:
+                i, j = ys.index(r[y]), xs.index(r[x])
+                grid[i, j] = r["success_rate"] * 100
+                ax.text(j, i, f"{r['tasks_placed']}/{r['tasks']}", ha="center", va="center", fontsize=7)
+        image = ax.imshow(grid, origin="lower", aspect="auto", cmap="RdYlGn", vmin=0, vmax=100)
+        ax.set_xticks(range(len(xs)), [f"{v:g}" for v in xs], rotation=45, fontsize=8)
+        ax.set_yticks(range(len(ys)), [f"{v:g}" for v in ys], fontsize=8)
+        ax.set_xlabel(x)
+        ax.set_ylabel(y)
+        ax.set_title(str(g) if g is not None else "task success", fontsize=9)
+    if image is not None:
+        fig.colorbar(image, ax=axes[0].tolist(), label="task success rate (%)")
     return fig
 
 

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from experiments.cell_capacity import measure_ul_capacity
-from experiments.figures import gain_figure, latency_figure, save, success_figure, traffic_figure
+from experiments.figures import gain_figure, latency_figure, map_figure, save, success_figure, traffic_figure
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
 from experiments.summary import (
@@ -104,6 +104,9 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
             per_load[load] = np.concatenate([per_load.get(load, np.empty(0)),
                                              _ul_latencies_ms(sweep_dir / rec["run_dir"])])
         figures["fig6_latency_cdf"] = save(latency_figure(lat, x), sweep_dir / "fig6_latency_cdf")
+        if spec.figures.map_y:
+            figures["fig8_map"] = save(map_figure(summary, x, spec.figures.map_y, spec.capacity.group),
+                                       sweep_dir / "fig8_map")
         if "grouped" in cap:
             figures["fig7_gain"] = save(gain_figure(cap["grouped"], threshold_label(max(spec.capacity.thresholds))),
                                         sweep_dir / "fig7_gain")
@@ -193,6 +196,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
         lines += ["", f"Cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
     lines += ["", "## Figures", ""]
     titles = {"fig7_gain": "Fig. 7: capacity gain over the reference, per group",
+              "fig8_map": "Fig. 8: task success rate map",
               "fig4_success": "Fig. 4: task success rate vs loops",
               "fig5_traffic": "Fig. 5: injected uplink traffic and throughput vs loops",
               "fig6_latency_cdf": "Fig. 6: uplink IP packet latency CDF"}

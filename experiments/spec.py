@@ -117,6 +117,9 @@ class FigureSpec(SpecModel):
     latency_loads: list[int | float] | None = Field(
         default=None, description="loads (capacity.x values) whose latency CDF is drawn in Fig. 6 "
         "(default: the smallest, a middle and the largest)")
+    map_y: str | None = Field(
+        default=None, description="a grid field: Fig. 8 maps the task success rate over capacity.x "
+        "and this field, one panel per capacity.group value (default: no map)")
 
 
 class SweepSpec(SpecModel):
@@ -200,6 +203,9 @@ class SweepSpec(SpecModel):
             if field is not None and field not in self.grid:
                 raise ValueError(f"capacity.{name} = {field!r} is not a grid field; grid fields: "
                                  f"{', '.join(self.grid)}")
+        if self.figures.map_y is not None and self.figures.map_y not in self.grid:
+            raise ValueError(f"figures.map_y = {self.figures.map_y!r} is not a grid field; grid fields: "
+                             f"{', '.join(self.grid)}")
         if self.capacity.group == self.capacity.x:
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
