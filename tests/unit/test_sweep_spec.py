@@ -318,3 +318,7 @@ def test_grouped_capacity_reads_gains_and_the_invariant_within_each_cell() -> No
 def test_the_capacity_group_must_be_a_grid_field_other_than_the_load() -> None:
     assert "capacity.group" in errors_of(spec(capacity={"group": "seed"}))[0][1]
     assert "load axis" in errors_of(spec(capacity={"group": "loops"}))[0][1]
+
+
+def test_the_map_field_must_be_a_grid_field() -> None:
+    assert "figures.map_y" in errors_of(spec(figures={"map_y": "seed"}))[0][1]
