@@ -14,7 +14,14 @@ import pyarrow.parquet as pq
 import yaml
 
 from experiments.cell_capacity import measure_ul_capacity
-from experiments.figures import gain_figure, latency_figure, map_figure, save, success_figure, traffic_figure
+from experiments.figures import (
+    gain_figure,
+    latency_figure,
+    map_figure,
+    save,
+    success_figure,
+    traffic_figure,
+)
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
 from experiments.summary import (
