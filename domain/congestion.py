@@ -117,14 +117,13 @@ class Level:
         self.value = 1.0
         self._last_cut_us: int | None = None
 
-    def update(self, now_us: int, queueing_s: float, loss: float) -> float:
+    def update(self, now_us: int, queueing_s: float, loss: float) -> None:
         if queueing_s > self.target_s or loss > self.loss_target:
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 self.value = max(self.low, self.value * CUT)
                 self._last_cut_us = now_us
         else:
             self.value = min(1.0, self.value + STEP)
-        return self.value
 
 
 class LoadControl:

@@ -86,6 +86,12 @@ PICK_TIME_S = 0.5  # the arm's alignment to sealed grip (the controller's GRASP_
 SD_LIMIT_M = GATE_M / 2  # a prediction this uncertain may match the wrong part
 
 
+def gate_time_s(track: dict, age_s: float) -> float:
+    """Time left (s) before the tracker's prediction of ``track``, its sd grown by the tracker's
+    motion model over the estimate's age ``age_s``, leaves half the association gate."""
+    return math.sqrt(2 * max(0.0, SD_LIMIT_M - track.get("sd", 0.0)) / ACCEL_SD) - age_s
+
+
 def step_up(pdp: float) -> float:
     """``pdp`` rounded up to PDP_STEP, at most 1 (a QoS is signalled in those steps)."""
     return round(min(1.0, math.ceil(round(pdp / PDP_STEP, 6)) * PDP_STEP), 4)
@@ -136,8 +142,7 @@ class HeuristicPolicy(Policy):
             need = c.track_pdp
             if age_s * 1000 > c.stale_ms:
                 need = max(need, pdp_for_deadline(slack_s, state.fps))
-            # Time left before the tracker's prediction of the part leaves half its gate.
-            gate_s = math.sqrt(2 * max(0.0, SD_LIMIT_M - tr.get("sd", 0.0)) / ACCEL_SD) - age_s
+            gate_s = gate_time_s(tr, age_s)
             need = max(need, pdp_for_deadline(gate_s, state.fps))
             pdp = max(pdp, need)
         if not parts and not self._next_part_unlikely(state):

@@ -6,8 +6,8 @@ parts that need the arm first, where they are relative to the pick window (in wi
 in seconds of belt travel), their measured speed, the tracker's position sd, the estimate's age;
 whether a part is lifted off the belt (the arm holds it: the only sign of the robot's phase the
 Edge sees); the age of the last frame; when the next part is due; the cell (belt speed, object
-period) and its load, as the Edge sees it: the smoothed queueing delay of every loop's frames. Every feature is scaled to a few units and
-clipped to [-OBS_LIMIT, OBS_LIMIT].
+period) and its load, as the Edge sees it: the smoothed queueing delay of every loop's frames.
+Every feature is scaled to a few units and clipped to [-OBS_LIMIT, OBS_LIMIT].
 
 A model records ``FEATURE_NAMES``, ``FEATURE_SET`` and the action levels it was trained with
 (policy.json); the learned policy refuses a model whose set differs, naming both, so changing a

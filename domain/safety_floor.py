@@ -6,26 +6,18 @@ or its track would be lost (docs/policy.md, "Safety floor").
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from domain import cell_geometry as g
 from domain import policy_features as F
-from domain.policy import LoopState, pdp_for_deadline, step_up
-from domain.tracker import ACCEL_SD, GATE_M
+from domain.policy import PICK_TIME_S, LoopState, gate_time_s, pdp_for_deadline, step_up
 
-# The controller's alignment to sealed grip (its GRASP_TIME_S): a part must stay this long in
-# the pick window after the arm starts on it.
-PICK_TIME_S = 0.5
 # How long before a part reaches the pick window the arm may start working on it (it waits at
 # the window's entry): from then on its estimate must stay fresh.
 LEAD_S = 1.0
-SD_LIMIT_M = GATE_M / 2  # a prediction this uncertain may match the wrong part
 # Share of the time a part can be picked in (from its landing) within which it must be seen: the
 # sooner the arm knows it, the sooner it can start, and on a dense belt the next part waits.
 DETECT_SHARE = 0.25
-# Share of the robot's estimate age limit an estimate may reach while the arm works on a part.
-FRESH_SHARE = 1.0
 
 
 @dataclass(frozen=True)
@@ -59,8 +51,8 @@ def safety_floor(state: LoopState, limits: FloorLimits) -> float:
     - every tracked part: a useful frame before the tracker's prediction of it (its sd grown by
       the tracker's motion model) leaves half the association gate, or the track is lost;
     - when a new part may have landed (not before ``next_part_earliest_us``): a useful frame
-      within half the time the arm has to pick a part from its landing (to the last grasp start
-      in the window), less the uplink delay."""
+      within DETECT_SHARE of the time the arm has to pick a part from its landing (to the last
+      grasp start in the window), less the uplink delay and the policy period."""
     link = state.link
     useful = (1.0 - min(link.loss, 0.9)) * (1.0 - limits.miss_rate)
     fps, risk = state.fps, limits.risk
@@ -72,10 +64,9 @@ def safety_floor(state: LoopState, limits: FloorLimits) -> float:
     for x, tr in parts:
         age_s = max(0.0, (state.now_us - tr["t_us"]) / 1e6)
         if (x0 - x) / v <= LEAD_S:
-            fresh_s = limits.max_estimate_age_s * FRESH_SHARE - delay_s - limits.period_s
+            fresh_s = limits.max_estimate_age_s - delay_s - limits.period_s
             floor = max(floor, pdp_for_deadline(fresh_s, fps, useful, risk))
-        gate_s = math.sqrt(2 * max(0.0, SD_LIMIT_M - tr.get("sd", 0.0)) / ACCEL_SD) - age_s - delay_s
-        floor = max(floor, pdp_for_deadline(gate_s, fps, useful, risk))
+        floor = max(floor, pdp_for_deadline(gate_time_s(tr, age_s) - delay_s, fps, useful, risk))
     earliest = next_part_earliest_us(state)
     if earliest is None or state.now_us >= earliest:
         window_s = (x1 - x0) / v
