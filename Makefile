@@ -19,7 +19,7 @@ PLATFORM_UID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || echo $$u)
 PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
-.PHONY: help setup install run smoke test test-unit test-integration lint bench bench-docker images up down \
+.PHONY: help setup install run smoke test test-unit test-integration lint bench load bench-docker images up down \
 	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
@@ -75,6 +75,9 @@ bench: $(BIN)/cosim5g native ## benchmarks: conductor windows/s, smoke real-time
 
 soak: $(BIN)/cosim5g native ## 100 smoke runs in one coordinator + 20 in containers (RUNS, DOCKER_RUNS): leftovers, RSS, fds (results/bench/)
 	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),20)
+
+load: $(BIN)/cosim5g native ## load test of the REST API: REQUESTS (1000) mixed requests from CLIENTS (8) against one coordinator: p99, RSS, 5xx, queue limit, nothing lost (results/bench/)
+	$(BIN)/python -m benchmarks.api_load --requests $(or $(REQUESTS),1000) --clients $(or $(CLIENTS),8)
 
 chaos: $(BIN)/cosim5g native ## 30 runs, both runtimes, each with a random fault (kill/stop a federate, kill the coordinator, OOM in docker): end states, leftovers
 	$(BIN)/python -m benchmarks.reliability chaos --runs $(or $(RUNS),30) --runtime $(or $(RUNTIME),both)

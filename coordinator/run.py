@@ -28,6 +28,7 @@ from fabric import keys
 from fabric.tables import write_json
 from fabric.zenoh_bus import ZenohBus
 from scenario.schema import Scenario, dump_scenario
+from services.roles import ROLES, federates
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +46,8 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-# ``cohost: core`` serves these federates as one group (``fabric.group``) in one process: none
-# has a compute node to emulate, and they exchange messages every window.
-CORE_ROLES = ("physics", "netsim", "loops")
+# ``cohost: core`` serves the core roles' federates (``services.roles``) as one group
+# (``fabric.group``) in one process.
 CORE_GROUP = "core"
 # The longest window given to a participant alone with something to do (the core group, while
 # the detailed loops' federates wait): it meets the conductor at least this often.
@@ -57,17 +57,18 @@ LONG_WINDOW_US = 100_000
 def federate_specs(scenario: Scenario) -> list[FederateSpec]:
     """One spec per process (participant of the window protocol); with ``cohost: core`` the core
     federates are the members of the group ``core``."""
-    profiles = {"camera": scenario.nodes.camera, "edge": scenario.nodes.edge, "robot": scenario.nodes.robot}
     specs = []
-    core = tuple((name, role) for name, role in scenario.federates() if role in CORE_ROLES)
+    every = federates(scenario)
+    core = tuple((name, r) for name, r in every if ROLES[r].core)
     if scenario.cohost == "core":
         specs.append(FederateSpec(name=CORE_GROUP, role="group", members=core))
-    for name, role in scenario.federates():
-        if scenario.cohost == "core" and role in CORE_ROLES:
+    for name, r in every:
+        if scenario.cohost == "core" and ROLES[r].core:
             continue
-        p = profiles.get(role)
+        node = ROLES[r].node
+        p = getattr(scenario.nodes, node) if node else None
         limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb, timing=p.timing) if p else NodeLimits()
-        specs.append(FederateSpec(name=name, role=role, limits=limits))
+        specs.append(FederateSpec(name=name, role=r, limits=limits))
     return specs
 
 
@@ -215,8 +216,8 @@ def execute_run(
 
     wall_s = time.monotonic() - wall0
     sim_s = min(sim_us, scenario.duration_us) / 1e6
-    if status == "completed" and len(stopped) < len(scenario.federates()):
-        missing = sorted({n for n, _ in scenario.federates()} - set(stopped))
+    if status == "completed" and len(stopped) < len(federates(scenario)):
+        missing = sorted({n for n, _ in federates(scenario)} - set(stopped))
         status, reason = "failed", f"no final report from {', '.join(missing)}"
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.

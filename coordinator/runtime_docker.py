@@ -54,6 +54,7 @@ import docker
 from docker.errors import APIError, DockerException, ImageNotFound, NotFound
 
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
+from fabric.settings import env_name, settings
 
 log = logging.getLogger(__name__)
 
@@ -345,9 +346,9 @@ class DockerLauncher(Launcher):
         """
         self.client = client if client is not None else docker_client()
         self.image = image
-        self.router_host = router_host or os.environ.get("COSIM5G_ROUTER_HOST") or HOST_ALIAS
-        port = metrics_port or os.environ.get("COSIM5G_FEDERATE_METRICS_PORT")
-        self.metrics_port = int(port) if port else None
+        given = settings()
+        self.router_host = router_host or given.router_host or HOST_ALIAS
+        self.metrics_port = metrics_port or given.federate_metrics_port
         self.log_tail_on_stop = log_tail_on_stop
         self.poll_interval_s = poll_interval_s
         self._last_poll = -float("inf")
@@ -492,7 +493,7 @@ class DockerLauncher(Launcher):
         if spec.limits.cpus is not None:
             env["COSIM5G_NODE_CPUS"] = repr(spec.limits.cpus)
         if self.metrics_port:
-            env["COSIM5G_METRICS_PORT"] = str(self.metrics_port)  # fabric.metrics
+            env[env_name("metrics_port")] = str(self.metrics_port)  # fabric.metrics
         extra_hosts = {HOST_ALIAS: "host-gateway"} if self.coordinator_on_host else None
         try:
             container = self.client.containers.run(

@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fabric.settings import settings as platform_settings
+
 PATH = Path(__file__).parent / "data" / "frame_model.json"
 RUN_FILE = "frame_model.json"  # in a run's directory: the model its abstract loops use
-CACHE_ENV = "COSIM5G_CACHE_DIR"  # default: ~/.cache/cosim5g
 # The camera settings that shape a compressed frame or what the estimator sees in it.
 CAMERA_KEYS = ("width_px", "height_px", "fovy_deg", "jpeg_quality", "depth_codec", "depth_decimation",
                "sensor_model", "depth_subpixel_px", "depth_noise_mm")
@@ -75,7 +75,7 @@ def settings_match(model: FrameModel, settings: dict[str, Any]) -> bool:
 def cache_path(settings: dict[str, Any], root: Path | None = None) -> Path:
     """Where the model measured for ``settings`` is cached (under ``root``, default
     $COSIM5G_CACHE_DIR or ~/.cache/cosim5g)."""
-    root = root or Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "cosim5g")
+    root = root or platform_settings().cache_dir or Path.home() / ".cache" / "cosim5g"
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
     return root / "frame-models" / f"{digest}.json"
 

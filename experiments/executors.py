@@ -17,11 +17,13 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from experiments.points import Point
+from experiments.slots import POINT_PRIORITY, Slots
 from services.main import set_parent_death_signal
 
 
@@ -115,10 +117,13 @@ class LocalExecutor:
 
     name = "local"
 
-    def __init__(self, jobs: int = 1) -> None:
+    def __init__(self, jobs: int = 1, slots: Slots | None = None) -> None:
+        """``slots``: a pool shared with other work on this host (the coordinator's jobs), of
+        which each point takes one while it runs."""
         if jobs < 1:
             raise ValueError(f"jobs must be >= 1, got {jobs}")
         self.jobs = jobs
+        self.slots = slots
 
     def run(self, tasks: list[PointTask], on_start: Callable[[PointTask], None],
             on_done: Callable[[PointTask, PointOutcome], None], cancel: threading.Event) -> None:
@@ -126,10 +131,11 @@ class LocalExecutor:
         stop = threading.Event()
 
         def one(task: PointTask) -> None:
-            if cancel.is_set():
-                return
-            on_start(task)
-            outcome = run_point(task, procs)
+            with self.slots.take(POINT_PRIORITY, cancel) if self.slots else nullcontext(True) as got:
+                if not got or cancel.is_set():
+                    return
+                on_start(task)
+                outcome = run_point(task, procs)
             # A point the cancel interrupted is no result (it may even have died before it could
             # say so): it stays unrecorded and runs again on resume.
             if not cancel.is_set() or outcome.status == "completed":

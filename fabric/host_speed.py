@@ -47,9 +47,11 @@ from typing import Any
 
 import numpy as np
 
+from fabric.settings import env_name, settings
+
 # Bump when the scoring workload changes: scores of different versions are not comparable.
 SCORE_VERSION = 1
-SCORE_ENV = "COSIM5G_HOST_SCORE"
+SCORE_ENV = env_name("host_score")
 CACHE_MAX_AGE_DAYS = 7
 REFERENCE_FILE = "data/reference_core.json"
 # Repetitions of the whole mix: the full measurement (start of a node, cache miss) and the short
@@ -244,18 +246,9 @@ def _write_atomic(path: Path, data: dict[str, Any]) -> None:
 
 
 def injected_score() -> float | None:
-    """The score given in ``COSIM5G_HOST_SCORE`` (None when unset)."""
-    raw = os.environ.get(SCORE_ENV)
-    if raw is None or raw.strip() == "":
-        return None
-    try:
-        value = float(raw)
-    except ValueError:
-        value = -1.0
-    if not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"{SCORE_ENV} = {raw!r}: expected a positive number (a host score, "
-                         f"the reference core scores {reference().score:.1f})")
-    return value
+    """The score given in ``COSIM5G_HOST_SCORE`` (None when unset); ValueError for one that is
+    not a positive number."""
+    return settings().host_score
 
 
 def measure(reps: int = MEASURE_REPS) -> HostScore:

@@ -6,12 +6,13 @@ for every container); otherwise they are only collected in-process.
 
 from __future__ import annotations
 
-import os
 from bisect import bisect_left
 from collections import Counter as Tally
 from typing import Any
 
 from prometheus_client import Counter, Gauge, Histogram, start_http_server
+
+from fabric.settings import settings
 
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
@@ -64,8 +65,8 @@ def observe_all(histogram: Any, values: list[float]) -> None:
 
 def serve_from_env() -> int | None:
     """Start the metrics endpoint if ``COSIM5G_METRICS_PORT`` is set; the port, or None."""
-    port = os.environ.get("COSIM5G_METRICS_PORT")
-    if not port:
+    port = settings().metrics_port
+    if port is None:
         return None
-    start_http_server(int(port))
-    return int(port)
+    start_http_server(port)
+    return port

@@ -31,6 +31,8 @@ import tempfile
 from functools import lru_cache
 from pathlib import Path
 
+from fabric.settings import env_name, settings
+
 log = logging.getLogger(__name__)
 
 # The directory holding the top-level packages (the repository, or site-packages when installed).
@@ -57,14 +59,13 @@ LIBRARIES = {"cosim5g_stepper": "services/physics/native_stepper.c"}
 # makes a build stale too.
 DEPENDS = ("scenario/nr.py", "fabric/seeding.py")
 GROUP = "cosim5g_native"  # mypyc's shared library of the group: cosim5g_native__mypyc
-PURE_ENV = "COSIM5G_PURE_PYTHON"
-DIR_ENV = "COSIM5G_NATIVE_DIR"
+PURE_ENV = env_name("pure_python")
+DIR_ENV = env_name("native_dir")
 
 
 def native_dir() -> Path:
     """Where the build for this interpreter lives."""
-    env = os.environ.get(DIR_ENV)
-    return Path(env) if env else ROOT / "build" / "native" / sys.implementation.cache_tag
+    return settings().native_dir or ROOT / "build" / "native" / sys.implementation.cache_tag
 
 
 @lru_cache(maxsize=1)
@@ -94,7 +95,7 @@ def _module_name(rel: str) -> str:
 @lru_cache(maxsize=1)
 def _fresh_build() -> Path | None:
     """The build directory if it exists and was made from the sources as they are now."""
-    if os.environ.get(PURE_ENV, "") not in ("", "0"):
+    if settings().pure_python:
         return None
     d = native_dir()
     stamped = _stamped_digest(d)

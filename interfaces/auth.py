@@ -19,8 +19,10 @@ import stat
 import time
 from pathlib import Path
 
-TOKEN_ENV = "COSIM5G_TOKEN"
-TOKEN_FILE_ENV = "COSIM5G_TOKEN_FILE"
+from fabric.settings import env_name, settings
+
+TOKEN_ENV = env_name("token")
+TOKEN_FILE_ENV = env_name("token_file")
 DEFAULT_TOKEN_FILE = Path("results") / "auth" / "api-token"
 # Shorter tokens are refused: a guessable token is no protection.
 MIN_TOKEN_CHARS = 16
@@ -34,8 +36,7 @@ def token_file(explicit: str | Path | None = None) -> Path:
     """The token file: ``explicit`` if given, else ``COSIM5G_TOKEN_FILE``, else the default."""
     if explicit:
         return Path(explicit)
-    env = os.environ.get(TOKEN_FILE_ENV)
-    return Path(env) if env else DEFAULT_TOKEN_FILE
+    return settings().token_file or DEFAULT_TOKEN_FILE
 
 
 def _checked(token: str, source: str) -> str:
@@ -63,7 +64,7 @@ def server_token(path: Path, keep_env_token: bool = False) -> str:
     """The token a coordinator accepts: ``COSIM5G_TOKEN``, else the file at ``path``, which is
     created (random, mode 0600, its folder 0700) if it does not exist yet. ``keep_env_token``:
     a ``COSIM5G_TOKEN`` is also written to ``path`` (replacing what it held)."""
-    env = os.environ.get(TOKEN_ENV)
+    env = settings().token
     if env:
         token = _checked(env, TOKEN_ENV)
         if keep_env_token:
@@ -101,7 +102,7 @@ def _write_private(path: Path, token: str, replace: bool) -> bool:
 
 def client_token(path: str | Path | None = None) -> str | None:
     """The token a client sends: ``COSIM5G_TOKEN``, else the token file's content, else None."""
-    env = os.environ.get(TOKEN_ENV)
+    env = settings().token
     if env:
         return env.strip()
     p = token_file(path)

@@ -252,10 +252,10 @@ def cmd_netsim(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from interfaces.api import ApiLimits, create_app
+    from fabric.settings import settings
+    from interfaces.api import LIMITS, create_app
     from interfaces.auth import (
         TOKEN_ENV,
-        TOKEN_FILE_ENV,
         TokenError,
         listen_sockets,
         server_token,
@@ -263,24 +263,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
     )
 
     try:
-        limits = ApiLimits.from_env(**{name: getattr(args, name) for name in ApiLimits.model_fields})
+        limits = settings(**{name: getattr(args, name) for name in LIMITS})
     except ValueError as exc:
         print(f"cosim5g serve: {exc}", file=sys.stderr)
         return 2
     path = token_file(args.token_file).absolute()
     try:
         # A file named on purpose also gets a COSIM5G_TOKEN, for whoever reads it (Prometheus).
-        token = server_token(path, keep_env_token=bool(args.token_file or os.environ.get(TOKEN_FILE_ENV)))
+        token = server_token(path, keep_env_token=bool(args.token_file or limits.token_file))
         socks = listen_sockets(args.host or ["127.0.0.1"], args.port)
     except (TokenError, OSError) as exc:
         print(f"cosim5g serve: {exc}", file=sys.stderr)
         return 2
-    hint = (f"the value of {TOKEN_ENV} where the coordinator runs" if os.environ.get(TOKEN_ENV)
+    hint = (f"the value of {TOKEN_ENV} where the coordinator runs" if limits.token
             else f"in {path} on the coordinator's host (readable by its owner only)")
     app = create_app(Path(args.results), Path(args.db), Path(args.scenarios), Path(args.sweeps),
-                     Path(args.sweep_specs), args.sweep_jobs, token=token, limits=limits, token_hint=hint)
+                     Path(args.sweep_specs), token=token, limits=limits, token_hint=hint)
     where = ", ".join(f"http://{s.getsockname()[0]}:{s.getsockname()[1]}" for s in socks)
-    print(f"cosim5g serve: API on {where}; token {hint}; limits {limits.model_dump()}", file=sys.stderr)
+    print(f"cosim5g serve: API on {where}; token {hint}; limits {limits.model_dump(include=set(LIMITS))}",
+          file=sys.stderr)
     uvicorn.Server(uvicorn.Config(app, log_level="info")).run(sockets=socks)
     return 0
 
@@ -375,7 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenarios", default="configs/scenarios")
     s.add_argument("--sweeps", default=str(DEFAULT_SWEEPS), help="folder for sweep directories")
     s.add_argument("--sweep-specs", default="configs/sweeps", help="the shipped sweep specs")
-    s.add_argument("--sweep-jobs", type=int, default=1, help="points of a sweep run side by side")
+    s.add_argument("--max-body-bytes", type=int, help="largest request body, answered 413 beyond it "
+                   "(default $COSIM5G_MAX_BODY_BYTES or 1000000)")
+    s.add_argument("--slots", type=int, help="runs and sweep points simulated at once, shared by runs and sweeps "
+                   "(default $COSIM5G_SLOTS or half the host's cores, at least 1)")
     s.set_defaults(fn=cmd_serve)
     c = sub.add_parser("submit", help="start a run (or a sweep) through the coordinator's REST API")
     c.add_argument("scenario", nargs="?", help="name of a scenario in the coordinator's configs/scenarios/")

@@ -8,7 +8,6 @@ Every call but ``/healthz`` carries the API token: ``COSIM5G_TOKEN``, else the t
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 import urllib.error
@@ -16,6 +15,7 @@ import urllib.request
 from collections.abc import Callable
 from typing import Any
 
+from fabric.settings import settings
 from interfaces.auth import DEFAULT_TOKEN_FILE, TOKEN_ENV, TOKEN_FILE_ENV, client_token
 
 
@@ -71,9 +71,10 @@ def _token_source(token: str | None) -> str:
         return "the token given was wrong"
     if token == "":
         return "no token was sent"
-    if os.environ.get(TOKEN_ENV):
+    given = settings()
+    if given.token:
         return f"the token in {TOKEN_ENV} was wrong"
-    path = os.environ.get(TOKEN_FILE_ENV) or str(DEFAULT_TOKEN_FILE)
+    path = str(given.token_file or DEFAULT_TOKEN_FILE)
     if client_token() is None:
         return f"none sent: {TOKEN_ENV} is not set and {path} cannot be read"
     return f"the token in {path} was wrong"

@@ -27,7 +27,7 @@ CALIBRATED_UL_CAPACITY_MBPS = 178.6
 class NrConfig(BaseModel):
     """Every parameter of ``NrCell``; units are in the field names."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     # --- carrier and numerology -------------------------------------------------------------
     carrier_frequency_hz: float = Field(

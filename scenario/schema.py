@@ -20,7 +20,8 @@ from scenario.nr import NrConfig
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # No field takes an infinite or NaN number: a limit, a rate or a timeout must be a finite one.
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class JobModel(Strict):
@@ -377,15 +378,6 @@ class Scenario(Strict):
     @property
     def frame_period_us(self) -> int:
         return int(round(1_000_000 / self.camera.fps))
-
-    def federates(self) -> list[tuple[str, str]]:
-        """(name, role) of every federate of this scenario, in a stable order."""
-        out = [("physics", "physics"), ("netsim", "netsim"), ("edge", "edge")]
-        out += [(f"camera-{i}", "camera") for i in range(self.detailed_loops)]
-        out += [(f"robot-{i}", "robot") for i in range(self.detailed_loops)]
-        if self.loops > self.detailed_loops:
-            out.append(("loops", "loops"))
-        return out
 
     def ue_positions_m(self, loops: int | None = None) -> dict[str, tuple[float, float, float]]:
         """Radio endpoints (camera-i, robot-i) and their positions in the hall, metres (of the

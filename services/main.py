@@ -28,38 +28,14 @@ from types import FrameType
 
 from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
 from fabric.heap import simulation_heap
+from fabric.settings import env_name, settings
 from scenario.schema import ScenarioError, load_scenario
+from services.roles import ROLES
 
-PARENT_PID_ENV = "COSIM5G_PARENT_PID"
-PROFILE_DIR_ENV = "COSIM5G_PROFILE_DIR"  # where each federate writes its cProfile statistics
+PARENT_PID_ENV = env_name("parent_pid")
+PROFILE_DIR_ENV = env_name("profile_dir")  # where each federate writes its cProfile statistics
 ORPHAN_GRACE_S = 3.0  # time to write the last records once the coordinator is gone
 _PR_SET_PDEATHSIG = 1
-
-
-def federate_class(role: str) -> type[Federate]:
-    # Imported lazily: a camera process does not need to load MuJoCo.
-    if role == "physics":
-        from services.physics.federate import PhysicsFederate
-        return PhysicsFederate
-    if role == "camera":
-        from services.camera.federate import CameraFederate
-        return CameraFederate
-    if role == "edge":
-        from services.edge.federate import EdgeFederate
-        return EdgeFederate
-    if role == "robot":
-        from services.robot.federate import RobotFederate
-        return RobotFederate
-    if role == "netsim":
-        from netsim.federate import NetsimFederate
-        return NetsimFederate
-    if role == "loops":
-        from services.loops.federate import LoopsFederate
-        return LoopsFederate
-    raise ValueError(f"unknown role {role!r}: physics, camera, edge, robot, netsim or loops")
-
-
-ROLES = ("physics", "camera", "edge", "robot", "netsim", "loops")
 
 
 def member(text: str) -> tuple[str, str]:
@@ -115,8 +91,8 @@ class Lifeline:
     def on_signal(self, signum: int, frame: FrameType | None) -> None:
         if self.federate is None:  # nothing recorded yet: leave at once
             sys.exit(EXIT_ORPHANED)
-        parent = os.environ.get(PARENT_PID_ENV)
-        if parent and str(os.getppid()) != parent:  # the parent-death signal
+        parent = settings().parent_pid
+        if parent is not None and os.getppid() != parent:  # the parent-death signal
             self.lost(f"the coordinator (pid {parent}) died")
         else:
             self.lost(f"received {signal.Signals(signum).name}")
@@ -124,18 +100,18 @@ class Lifeline:
     def watch_parent(self) -> None:
         """Leave when the coordinator that started this process dies. The parent may already be
         gone by the time the death signal is set up: compare with the pid it announced."""
-        expected = os.environ.get(PARENT_PID_ENV)
-        if not expected:
+        expected = settings().parent_pid
+        if expected is None:
             return  # not started by a coordinator directly (containers: tini is the parent)
         set_parent_death_signal(signal.SIGTERM)
-        if str(os.getppid()) != expected:
+        if os.getppid() != expected:
             self.lost(f"the coordinator (pid {expected}) exited before this federate started")
 
 
-def serve_profiled(fed: Federate, profile_dir: str | None) -> int:
+def serve_profiled(fed: Federate, profile_dir: Path | None) -> int:
     """Serve ``fed``; with ``profile_dir`` set, under cProfile, its statistics written to
     ``<profile_dir>/<federate>.pstats`` when it leaves (``benchmarks.speed --profile``)."""
-    if not profile_dir:
+    if profile_dir is None:
         return fed.serve()
     import cProfile
 
@@ -181,15 +157,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.role == "group":
         from fabric.group import FederateGroup
 
-        members = [federate_class(role)(FederateContext(name, args.run_id, scenario, Path(args.results)), bus)
-                   for name, role in args.member]
+        members = [ROLES[r].federate_class()(FederateContext(name, args.run_id, scenario, Path(args.results)), bus)
+                   for name, r in args.member]
         fed = FederateGroup(ctx, bus, members)
     else:
-        fed = federate_class(args.role)(ctx, bus)
+        fed = ROLES[args.role].federate_class()(ctx, bus)
     lifeline.attach(fed)
     try:
         with simulation_heap():
-            code = serve_profiled(fed, os.environ.get(PROFILE_DIR_ENV))
+            code = serve_profiled(fed, settings().profile_dir)
     except Exception:
         logging.getLogger(args.name).exception("federate failed")
         code = 1

@@ -118,3 +118,51 @@ def test_run_containers_cannot_reach_the_api(docker_client: Any, run_id: str) ->
     host_port = coordinator.attrs["NetworkSettings"]["Ports"][f"{API_PORT}/tcp"][0]["HostPort"]
     with urllib.request.urlopen(f"http://127.0.0.1:{host_port}/healthz", timeout=10) as resp:
         assert resp.status == 200
+
+
+PROMETHEUS_PROBE = """
+import json, sys, urllib.error, urllib.request
+try:
+    out = urllib.request.urlopen(f"http://{sys.argv[1]}:9090/-/ready", timeout=5).status
+except urllib.error.HTTPError as e:
+    out = e.code
+except OSError as e:
+    reason = getattr(e, "reason", e)
+    out = "refused" if isinstance(reason, ConnectionRefusedError) else f"error: {reason}"
+print(json.dumps(out))
+"""
+
+
+def test_run_containers_cannot_reach_prometheus(docker_client: Any, run_id: str) -> None:
+    """Prometheus joins every run network to scrape federates; its API listens on the platform
+    network only (docker-compose.yml's entrypoint), so run containers cannot query it."""
+    svc = yaml.safe_load(COMPOSE.read_text())["services"]["prometheus"]
+    [alias] = svc["networks"]["default"]["aliases"]
+    # What compose runs ("$$" is its escape of "$"), with an empty configuration and data in /tmp.
+    script = "printf 'global: {}\\n' > /tmp/p.yml; " + svc["command"][0].replace("$$", "$").replace(
+        "/etc/prometheus/prometheus.yml", "/tmp/p.yml").replace("tsdb.path=/prometheus", "tsdb.path=/tmp/data")
+    labels = {LABEL_RUN: run_id}
+    platform = docker_client.networks.create(f"cosim5-test-{uuid.uuid4().hex[:8]}", driver="bridge", labels=labels)
+    prom = docker_client.containers.create(svc["image"], [script], entrypoint=svc["entrypoint"],
+                                           name=f"cosim5g-{run_id}-prometheus", labels=labels, read_only=True,
+                                           tmpfs={"/tmp": ""}, cap_drop=["ALL"], network=platform.name)
+    platform.disconnect(prom)
+    platform.connect(prom, aliases=[alias])
+    prom.start()
+    deadline = time.monotonic() + 90
+    while prom.exec_run(["wget", "-q", "-O", "/dev/null", f"http://{alias}:9090/-/ready"])[0] != 0:
+        prom.reload()
+        assert prom.status == "running", prom.logs().decode()[-2000:]
+        assert time.monotonic() < deadline, prom.logs().decode()[-2000:]
+        time.sleep(1.0)
+    run_net = docker_client.networks.create(f"cosim5g-{run_id}", driver="bridge", labels=labels)
+    run_net.connect(prom, aliases=["prometheus"])
+
+    def probe_from(network: str, host: str) -> Any:
+        out = docker_client.containers.run(RUNTIME_IMAGE, ["python", "-c", PROMETHEUS_PROBE, host], network=network,
+                                           labels=labels, remove=True, read_only=True, cap_drop=["ALL"],
+                                           tmpfs={"/tmp": ""})
+        return json.loads(out.decode().strip().splitlines()[-1])
+
+    assert probe_from(run_net.name, "prometheus") == "refused"
+    assert probe_from(platform.name, alias) == 200

@@ -28,7 +28,8 @@ from schemathesis.specs.openapi.checks import (  # noqa: E402
 
 from coordinator.run import RunResult  # noqa: E402
 from experiments.executors import PointTask  # noqa: E402
-from interfaces.api import ApiLimits, create_app  # noqa: E402
+from fabric.settings import settings as platform_settings  # noqa: E402
+from interfaces.api import create_app  # noqa: E402
 from scenario.schema import Scenario  # noqa: E402
 
 pytestmark = pytest.mark.integration
@@ -53,8 +54,10 @@ class NoPoints:
 def build_app(root: Path) -> Any:
     # Small limits, so that the fuzzer meets them (422 and 429 answers) as well.
     return create_app(root / "runs", root / "store.db", ROOT / "configs" / "scenarios", root / "sweeps",
-                      ROOT / "configs" / "sweeps", token=TOKEN, execute=instant_run, make_sweep_executor=NoPoints,
-                      limits=ApiLimits(max_duration_s=60, max_run_timeout_s=3600, max_sweep_points=50, max_queued=4))
+                      ROOT / "configs" / "sweeps", token=TOKEN, execute=instant_run,
+                      make_sweep_executor=lambda slots: NoPoints(),
+                      limits=platform_settings(max_duration_s=60, max_run_timeout_s=3600, max_sweep_points=50,
+                                               max_queued=4))
 
 
 # The schema is loaded when the module is (schemathesis generates one test per operation at
@@ -80,8 +83,7 @@ schema = schemathesis.openapi.from_asgi("/openapi.json", without_lifespan, heade
 @pytest.fixture(scope="module", autouse=True)
 def _close_app() -> Iterator[None]:
     yield
-    APP.state.sweeps.close()
-    APP.state.coordinator.close()
+    APP.app.state.jobs.close()
 
 
 @schema.parametrize()

@@ -27,8 +27,10 @@ from fastapi.routing import APIRoute
 
 from coordinator.run import RunResult
 from experiments.executors import PointTask
-from interfaces.api import ApiLimits, create_app
+from fabric.settings import settings
+from interfaces.api import create_app
 from interfaces.auth import TokenError, listen_sockets, server_token, token_matches
+from interfaces.guard import Guard
 from scenario.schema import Scenario
 
 pytestmark = pytest.mark.integration
@@ -62,11 +64,12 @@ class NoPoints:
         del tasks, on_start, on_done, cancel
 
 
-def make_app(tmp_path: Path, **limits: Any) -> tuple[FastAPI, HeldRuns]:
+def make_app(tmp_path: Path, **limits: Any) -> tuple[Guard, HeldRuns]:
     held = HeldRuns()
     app = create_app(tmp_path / "runs", tmp_path / "store.db", ROOT / "configs" / "scenarios",
                      tmp_path / "sweeps", ROOT / "configs" / "sweeps", token=TOKEN,
-                     limits=ApiLimits(**limits), execute=held, make_sweep_executor=NoPoints)
+                     limits=settings(**limits), execute=held,
+                     make_sweep_executor=lambda slots: NoPoints())
     return app, held
 
 
@@ -82,7 +85,7 @@ class Reply:
 class Client:
     """Plain HTTP to a served app: no redirect is followed, the cookie is kept like a browser's."""
 
-    def __init__(self, app: FastAPI, port: int) -> None:
+    def __init__(self, app: Guard, port: int) -> None:
         self.app, self.port = app, port
         self.cookie: str | None = None
 
@@ -114,7 +117,7 @@ class Client:
 
 
 @contextmanager
-def serving(app: FastAPI) -> Iterator[Client]:
+def serving(app: Guard) -> Iterator[Client]:
     """The app behind uvicorn on a loopback port, lifespan included."""
     [sock] = listen_sockets(["127.0.0.1"], 0)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
@@ -144,11 +147,20 @@ def concrete(path: str) -> str:
     return re.sub(r"\{[^}]+\}", "x", path)
 
 
+def routes(app: FastAPI) -> list[Any]:
+    """Every route of the app, those of its included routers too."""
+    out = []
+    for route in app.routes:
+        inner = getattr(route, "original_router", None)
+        out += routes(inner) if inner is not None else [route]
+    return out
+
+
 def test_every_route_but_healthz_wants_the_token(client: Client) -> None:
-    app = client.app
+    app = client.app.app
     assert isinstance(app, FastAPI)
     checked = 0
-    for route in app.routes:  # whatever routes exist, now or added later
+    for route in routes(app):  # whatever routes exist, now or added later
         path = getattr(route, "path", None)
         methods = getattr(route, "methods", None) or {"GET"}
         if path is None:
@@ -167,7 +179,7 @@ def test_every_route_but_healthz_wants_the_token(client: Client) -> None:
                 checked += 1
     # The run and sweep routes, the pages, /metrics and the schema are all among them.
     assert checked >= 3 * 15
-    paths = {getattr(r, "path", None) for r in app.routes}
+    paths = {getattr(r, "path", None) for r in routes(app)}
     assert {"/runs", "/sweeps", "/metrics", "/openapi.json", "/", "/scenarios"} <= paths
 
 
@@ -292,12 +304,19 @@ def test_queued_work_beyond_the_limit_gets_429(tmp_path: Path) -> None:
             "/metrics", headers=AUTH).text
 
 
-def test_limits_come_from_flags_then_environment_then_defaults() -> None:
-    env = {"COSIM5G_MAX_QUEUED": "3", "COSIM5G_MAX_DURATION_S": "60"}
-    limits = ApiLimits.from_env(env, max_duration_s=90.0, max_sweep_points=None)
+def test_limits_come_from_flags_then_environment_then_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COSIM5G_MAX_QUEUED", "3")
+    monkeypatch.setenv("COSIM5G_MAX_DURATION_S", "60")
+    monkeypatch.delenv("COSIM5G_MAX_SWEEP_POINTS", raising=False)
+    limits = settings(max_duration_s=90.0, max_sweep_points=None)
     assert (limits.max_queued, limits.max_duration_s, limits.max_sweep_points) == (3, 90.0, 1000)
-    with pytest.raises(ValueError, match=r"max_queued \(--max-queued, COSIM5G_MAX_QUEUED\).*given '0'"):
-        ApiLimits.from_env({"COSIM5G_MAX_QUEUED": "0"})
+    monkeypatch.setenv("COSIM5G_MAX_QUEUED", "0")
+    with pytest.raises(ValueError, match=r"max_queued \(COSIM5G_MAX_QUEUED\) = '0'"):
+        settings()
+    monkeypatch.setenv("COSIM5G_MAX_QUEUED", "4")
+    for bad in ("inf", "nan"):
+        with pytest.raises(ValueError, match=r"max_duration_s \(COSIM5G_MAX_DURATION_S\) = " + repr(bad)):
+            settings(max_duration_s=bad)
 
 
 def test_the_token_file_is_created_once_and_private(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -323,12 +342,15 @@ def test_the_token_file_is_created_once_and_private(tmp_path: Path, monkeypatch:
     assert token_matches(TOKEN, TOKEN) and not token_matches(TOKEN[:-1], TOKEN)
 
 
-def test_routes_are_api_routes_so_the_dependency_reaches_them(client: Client) -> None:
-    """Routes that bypass the app's dependencies (plain Starlette routes, mounts) would bypass the
-    token: there must be none."""
-    app = client.app
-    assert isinstance(app, FastAPI)
-    assert all(isinstance(r, APIRoute) for r in app.routes), [r for r in app.routes if not isinstance(r, APIRoute)]
+def test_paths_no_route_serves_want_the_token_too(client: Client) -> None:
+    """The guard answers before routing: without the token, a path or method no route serves says
+    nothing of what exists (401, not 404 or 405)."""
+    for method, path, served in (("GET", "/nope", 404), ("GET", "/runs/x/y/z", 404), ("DELETE", "/runs", 405),
+                                 ("PUT", "/sweeps/x", 405)):
+        assert client.request(method, path).status_code == 401
+        assert client.request(method, path, headers=AUTH).status_code == served
+    # Every route is an API route, documented in the schema.
+    assert all(isinstance(r, APIRoute) for r in routes(client.app.app))
 
 
 def alias_bomb(levels: int = 8) -> str:
@@ -373,3 +395,161 @@ def test_a_huge_or_unbounded_grid_is_refused_before_it_is_expanded(tmp_path: Pat
             assert r.status_code == 422, (bad, r.status_code, r.text[:200])
         assert time.monotonic() - t0 < 10.0
     assert held.started == []
+
+
+def raw_request(port: int, method: str, path: str, headers: dict[str, str], body: bytes = b"",
+                chunks: list[bytes] | None = None) -> tuple[int, str]:
+    """One request with exactly the head given (a declared length the body need not match, or a
+    chunked body); the status and body of the answer."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        conn.putrequest(method, path, skip_accept_encoding=True)
+        for k, v in headers.items():
+            conn.putheader(k, v)
+        conn.endheaders()
+        try:
+            if chunks is not None:
+                for chunk in chunks:
+                    conn.send(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n")
+                conn.send(b"0\r\n\r\n")
+            elif body:
+                conn.send(body)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # answered (and closed) before the body was all sent
+        resp = conn.getresponse()
+        return resp.status, resp.read().decode(errors="replace")
+    finally:
+        conn.close()
+
+
+def rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def test_a_large_body_is_refused_by_its_size_before_the_token_or_any_parsing(tmp_path: Path) -> None:
+    """Four 16 MB bodies without a token moved the coordinator from 178 to 455 MB before each got
+    its 401; a 100 000-deep JSON body without a token got 400, not 401."""
+    app, held = make_app(tmp_path, max_body_bytes=1_000_000)
+    with serving(app) as c:
+        rss0 = rss_mb()
+        big = {"content-type": "application/json", "content-length": str(16_000_000)}
+        results: list[tuple[int, str]] = []
+        threads = [threading.Thread(target=lambda: results.append(raw_request(c.port, "POST", "/runs", big)))
+                   for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+        assert [s for s, _ in results] == [413] * 4
+        assert "max_body_bytes" in results[0][1] and "1000000 bytes" in results[0][1]
+        # A chunked body declares no length: it is counted as it comes, with the token too.
+        status, text = raw_request(c.port, "POST", "/runs", {**AUTH, "content-type": "application/json",
+                                                             "transfer-encoding": "chunked"},
+                                   chunks=[b" " * 400_000] * 3)
+        assert status == 413, text
+        deep = b"[" * 100_000 + b"]" * 100_000
+        status, _ = raw_request(c.port, "POST", "/runs", {"content-type": "application/json",
+                                                          "content-length": str(len(deep))}, deep)
+        assert status == 401
+        status, text = raw_request(c.port, "POST", "/runs", {**AUTH, "content-type": "application/json",
+                                                             "content-length": str(len(deep))}, deep)
+        assert 400 <= status < 500, (status, text[:200])
+        assert rss_mb() - rss0 < 50
+        metrics = c.get("/metrics", headers=AUTH).text
+        assert 'cosim_coordinator_requests_refused_total{reason="body_size"} 5.0' in metrics
+    assert held.started == []
+
+
+def test_sweep_admission_is_exact_under_concurrency(tmp_path: Path) -> None:
+    """12 concurrent POST /sweeps with max_queued 2 admitted 5 when sweeps were admitted outside
+    the runs' lock."""
+    app, _ = make_app(tmp_path, max_queued=2)
+    with serving(app) as c:
+        # NoPoints ends a sweep at once: hold them instead, so that they stay queued.
+        jobs = app.app.state.jobs
+        hold = threading.Event()
+        jobs.make_executor = lambda slots: Held(hold)
+        statuses: list[int] = []
+        spec = {"spec": {"name": "s", "base": "baseline", "grid": {"loops": [2]},
+                         "set": {"duration_s": 5, "detailed_loops": 0}}}
+
+        def post() -> None:
+            statuses.append(c.post("/sweeps", json=spec, headers=AUTH).status_code)
+
+        threads = [threading.Thread(target=post) for _ in range(12)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+        assert sorted(statuses) == [201] * 2 + [429] * 10
+        assert c.post("/runs", json={"scenario": "smoke"}, headers=AUTH).status_code == 429
+        hold.set()
+
+
+class Held:
+    """A sweep executor that runs nothing until ``hold`` is set."""
+
+    name = "held"
+
+    def __init__(self, hold: threading.Event) -> None:
+        self.hold = hold
+
+    def run(self, tasks: list[PointTask], on_start: Any, on_done: Any, cancel: threading.Event) -> None:
+        while not (self.hold.wait(0.1) or cancel.is_set()):
+            pass
+
+
+def test_a_request_names_no_file_of_the_coordinators_host(tmp_path: Path) -> None:
+    """policy.learned_model from a request made the Edge open a system file."""
+    app, held = make_app(tmp_path)
+    with serving(app) as c:
+        r = c.post("/runs", json={"scenario": "smoke", "overrides": ["policy.learned_model=/etc/passwd"]},
+                   headers=AUTH)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "policy.learned_model"
+        base = {"name": "s", "base": "baseline", "grid": {"loops": [2]}, "set": {"duration_s": 5, "detailed_loops": 0}}
+        for spec, field in (({**base, "set": {**base["set"], "policy.learned_model": "/etc/passwd"}},
+                             "set.policy.learned_model"),
+                            ({**base, "grid": {"loops": [2], "policy.learned_model": ["/etc/passwd"]}},
+                             "grid.policy.learned_model"),
+                            ({**base, "variants": {"v": {"policy.learned_model": "/etc/shadow"}}},
+                             "variants.v.policy.learned_model")):
+            r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)
+            assert r.status_code == 422, r.text
+            assert field in [e["field"] for e in r.json()["detail"]], r.text
+        # Infinite and NaN numbers are no limits.
+        for value in ("inf", ".inf", "nan"):
+            r = c.post("/runs", json={"scenario": "smoke", "overrides": [f"watchdog.window_timeout_s={value}"]},
+                       headers=AUTH)
+            assert r.status_code == 422 and r.json()["detail"][0]["field"] == "watchdog.window_timeout_s", r.text
+    assert held.started == []
+
+
+def test_answers_are_not_sniffed_and_the_docs_need_no_network(client: Client) -> None:
+    for path in ("/healthz", "/runs", "/nope"):
+        assert client.get(path, headers=AUTH).headers["x-content-type-options"] == "nosniff"
+    assert client.get("/runs").headers["x-content-type-options"] == "nosniff"  # the 401 too
+    page = client.get("/docs", headers=AUTH).text
+    scripts = re.findall(r"""(?:src|href)=["']([^"']+)""", page)
+    assert scripts and all(s.startswith("/") for s in scripts), scripts
+    for asset in ("/docs/swagger-ui-bundle.js", "/docs/swagger-ui.css"):
+        r = client.get(asset, headers=AUTH)
+        assert r.status_code == 200 and len(r.body) > 10_000
+    assert client.get("/docs/../../etc/passwd", headers=AUTH).status_code == 404
+
+
+def test_a_token_in_a_query_never_reaches_the_access_log(client: Client) -> None:
+    import logging
+
+    from interfaces.guard import RedactTokens
+
+    access = logging.getLogger("uvicorn.access")
+    assert any(isinstance(f, RedactTokens) for f in access.filters)
+    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 0, '%s - "%s %s HTTP/%s" %d',
+                               ("127.0.0.1:5", "GET", f"/login?next=/&token={TOKEN}", "1.1", 303), None)
+    for f in access.filters:
+        f.filter(record)
+    line = record.getMessage()
+    assert TOKEN not in line and "token=***" in line and "next=/" in line

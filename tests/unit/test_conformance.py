@@ -211,6 +211,13 @@ CASES = [
 ]
 
 
+
+def test_every_registered_role_has_a_case() -> None:
+    from services.roles import ROLES
+
+    assert {c.cls for c in CASES} == {r.federate_class() for r in ROLES.values()}
+
+
 # ---- the scripted conductor ----------------------------------------------------------------------
 Output = tuple[int, str, str, int, str, str, Any, Any]  # t_us, src, dst, seq, plane, kind, body, blob
 

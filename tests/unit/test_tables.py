@@ -221,8 +221,9 @@ def test_a_federate_flushes_every_few_simulated_seconds(tmp_path: Path) -> None:
 def test_a_run_whose_coordinator_died_is_closed_when_a_coordinator_starts(tmp_path: Path) -> None:
     """The API's store still says "running" and the run has only its streamed parts: the next
     coordinator marks it failed and merges the parts, kpis.json saying how far it got."""
-    from interfaces.api import Coordinator
-    from interfaces.store import ORPHAN_REASON, RunStore
+    from experiments.job_store import JobKind, JobStore
+    from experiments.jobs import ORPHAN_REASON, JobService
+
 
     run_dir = tmp_path / "runs" / "r1"
     now = [0]
@@ -231,12 +232,13 @@ def test_a_run_whose_coordinator_died_is_closed_when_a_coordinator_starts(tmp_pa
         now[0] = 1000 * i
         w.append(packet(i))
     w.flush()  # the federate streamed 6 rows, then everything died: the part was never closed
-    store = RunStore(tmp_path / "runs.sqlite")
-    store.add("r1", "smoke", {}, str(run_dir))
+    store = JobStore(tmp_path / "runs.sqlite")
+    store.add("r1", JobKind.RUN, "smoke", {}, run_dir)
     store.set_running("r1")
-    del store
-    coordinator = Coordinator(tmp_path / "runs", tmp_path / "runs.sqlite", tmp_path)
-    assert coordinator.store.get("r1")["status"] == "failed"
+    store.close()
+    jobs = JobService(tmp_path / "runs.sqlite", tmp_path / "runs", tmp_path / "sweeps", tmp_path)
+    assert jobs.store.get("r1")["state"] == "failed"
+    jobs.close()
     kpis = json.loads((run_dir / "kpis.json").read_text())
     assert kpis["status"] == "failed" and kpis["reason"] == ORPHAN_REASON
     assert kpis["recorded"]["rows"]["packets"] == 6

@@ -1,0 +1,74 @@
+"""Every setting the platform takes from its environment, in one object: the ``COSIM5G_*``
+variables, each a field of ``Settings`` (``COSIM5G_`` + the field's name in capitals).
+
+Entry points and the functions they call read ``settings()``; a runtime that starts a process
+passes settings on by ``env_name``. A bad value fails with the variable, what it was given and
+what is allowed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, ValidationError
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PREFIX = "COSIM5G_"
+
+
+class Settings(BaseSettings):
+    # An empty variable is an unset one (``COSIM5G_HOST_SCORE= cmd``).
+    model_config = SettingsConfigDict(env_prefix=PREFIX, extra="ignore", frozen=True, env_ignore_empty=True)
+
+    # The REST API (interfaces.api, interfaces.auth, interfaces.client).
+    token: str | None = Field(default=None, description="the API token (else the token file's)")
+    token_file: Path | None = Field(default=None, description="the API token's file (default "
+                                    "results/auth/api-token)")
+    max_duration_s: float = Field(default=3600.0, gt=0, allow_inf_nan=False,
+                                  description="longest simulated duration_s of a run or sweep point, s")
+    max_run_timeout_s: float = Field(default=21600.0, gt=0, allow_inf_nan=False,
+                                     description="largest watchdog.run_timeout_s (wall clock) of a run or "
+                                     "sweep point, s")
+    max_sweep_points: int = Field(default=1000, ge=1, description="most points (grid combinations x seeds, "
+                                  "repeat_until's extra seeds included) in one sweep")
+    max_queued: int = Field(default=32, ge=1, description="most runs and sweeps pending or running at once")
+    max_body_bytes: int = Field(default=1_000_000, ge=1024, description="largest request body, bytes (413 "
+                                "beyond it, before the body is read or the token checked)")
+    slots: int = Field(default_factory=lambda: max(1, (os.cpu_count() or 2) // 2), ge=1,
+                       description="runs and sweep points simulated at once (a run of many loops uses about "
+                       "two cores)")
+    # Compute and builds (fabric.native, fabric.host_speed, domain.frame_model).
+    native_dir: Path | None = Field(default=None, description="where the native builds are (default "
+                                    "build/native/<cache tag>)")
+    pure_python: bool = Field(default=False, description="never use the native builds")
+    host_score: float | None = Field(default=None, gt=0, allow_inf_nan=False,
+                                     description="this host's speed score, instead of measuring it")
+    cache_dir: Path | None = Field(default=None, description="cache of measured models (default "
+                                   "~/.cache/cosim5g)")
+    # A federate process (services.main, fabric.metrics), as its runtime starts it.
+    metrics_port: int | None = Field(default=None, ge=0, le=65535, description="serve Prometheus metrics on it")
+    parent_pid: int | None = Field(default=None, description="the coordinator's pid: the federate stops "
+                                   "when that process is gone")
+    profile_dir: Path | None = Field(default=None, description="write each federate's cProfile statistics here")
+    # The docker runtime's coordinator (coordinator.runtime_docker).
+    router_host: str | None = Field(default=None, description="the name containers reach the coordinator's "
+                                    "zenoh router by")
+    federate_metrics_port: int | None = Field(default=None, ge=1, le=65535,
+                                              description="the port each federate container serves metrics on")
+
+
+def settings(**given: Any) -> Settings:
+    """The settings: ``given`` (None = not given), else the environment, else the defaults.
+    ValueError naming the variable of a bad value."""
+    try:
+        return Settings(**{k: v for k, v in given.items() if v is not None})
+    except ValidationError as exc:
+        raise ValueError("; ".join(f"{e['loc'][0]} ({env_name(str(e['loc'][0]))}) = {e['input']!r}: {e['msg']}"
+                                   for e in exc.errors())) from None
+
+
+def env_name(field: str) -> str:
+    """The variable of a field: ``COSIM5G_MAX_QUEUED``."""
+    return f"{PREFIX}{field.upper()}"

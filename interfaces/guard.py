@@ -1,0 +1,157 @@
+"""The API's front door: what every request passes before any route or parser sees it.
+
+In this order, each refusal costing no more than reading the request's head: a body declared
+larger than the limit (413), a missing or wrong token (401, also for paths no route serves),
+then the body read up to the limit (413 past it) and handed on. Every answer carries
+``X-Content-Type-Options: nosniff``; the access log never shows a token given in a query.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from interfaces.auth import token_matches
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+App = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+COOKIE = "cosim5g_token"
+# Routes anyone may call: liveness only (the compose healthcheck and load balancers know no token).
+PUBLIC_PATHS = frozenset({"/healthz"})
+# A token in a query (``/login?token=...``): shown as *** in the access log.
+_QUERY_TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")
+
+
+class Guard:
+    """ASGI middleware around the whole app. ``refused``: the 401's detail (where the token is);
+    ``on_refused(reason)``: counts a refusal ("token" or "body_size")."""
+
+    def __init__(self, app: App, *, token: str, max_body_bytes: int, refused: str,
+                 on_refused: Callable[[str], None] = lambda reason: None) -> None:
+        self.app, self.token, self.max_body_bytes = app, token, max_body_bytes
+        self.refused, self.on_refused = refused, on_refused
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        send = _nosniff(send)
+        headers = _headers(scope)
+        declared = headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > self.max_body_bytes):
+            await self._too_large(send)
+            return
+        if scope["path"] not in PUBLIC_PATHS and not self._authorised(scope, headers):
+            self.on_refused("token")
+            await _answer(send, 401, self.refused, [(b"www-authenticate", b"Bearer")])
+            return
+        body = await self._body(receive)
+        if body is None:
+            await self._too_large(send)
+            return
+        await self.app(scope, _replay(body, receive), send)
+
+    def _authorised(self, scope: Scope, headers: dict[str, str]) -> bool:
+        given = None
+        scheme, _, credentials = headers.get("authorization", "").partition(" ")
+        if scheme.lower() == "bearer" and credentials:
+            given = credentials.strip()
+        elif (cookie := _cookie(headers.get("cookie", ""), COOKIE)) is not None:
+            given = cookie
+        elif scope["path"] == "/login":  # the login route checks this token again itself
+            given = _query_value(scope.get("query_string", b"").decode("latin-1"), "token")
+        return given is not None and token_matches(given, self.token)
+
+    async def _body(self, receive: Receive) -> bytes | None:
+        """The whole body, or None once it passes the limit (a chunked body declares no length)."""
+        chunks, size = [], 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                break
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_body_bytes:
+                return None
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        return b"".join(chunks)
+
+    async def _too_large(self, send: Send) -> None:
+        self.on_refused("body_size")
+        await _answer(send, 413, f"the request body is larger than this coordinator accepts: max_body_bytes "
+                                 f"(--max-body-bytes, COSIM5G_MAX_BODY_BYTES) = {self.max_body_bytes} bytes")
+
+
+def _headers(scope: Scope) -> dict[str, str]:
+    return {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+
+
+def _cookie(header: str, name: str) -> str | None:
+    for part in header.split(";"):
+        key, sep, value = part.strip().partition("=")
+        if sep and key == name:
+            return value
+    return None
+
+
+def _query_value(query: str, name: str) -> str | None:
+    from urllib.parse import parse_qs
+
+    values = parse_qs(query, max_num_fields=64).get(name)
+    return values[0] if values else None
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    """A receive that hands the app the body already read, then waits on the client as before."""
+    sent = False
+
+    async def replay() -> Message:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
+
+
+def _nosniff(send: Send) -> Send:
+    async def wrapped(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            message["headers"] = [*message.get("headers", []), (b"x-content-type-options", b"nosniff")]
+        await send(message)
+
+    return wrapped
+
+
+async def _answer(send: Send, status: int, detail: str, extra: list[tuple[bytes, bytes]] | None = None) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            *(extra or [])]})
+    await send({"type": "http.response.body", "body": body})
+
+
+class RedactTokens(logging.Filter):
+    """Shows a token in an access-log line's query as ``***``."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple) and any(isinstance(a, str) and "token=" in a for a in record.args):
+            record.args = tuple(_QUERY_TOKEN.sub("***", a) if isinstance(a, str) else a for a in record.args)
+        return True
+
+
+def redact_access_log() -> None:
+    """Install ``RedactTokens`` on uvicorn's access log (once)."""
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactTokens) for f in access.filters):
+        access.addFilter(RedactTokens())

@@ -1,0 +1,174 @@
+"""The coordinator's jobs: one pool of slots that runs and sweep points share, runs first; one
+store, adopting the two tables an older coordinator wrote."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coordinator.run import RunResult
+from experiments import executors
+from experiments.executors import LocalExecutor, PointOutcome, PointTask
+from experiments.job_store import JobKind, JobStore
+from experiments.jobs import JobService, TooMuchWork
+from experiments.slots import POINT_PRIORITY, RUN_PRIORITY, Slots
+from scenario.schema import Scenario, load_scenario
+
+ROOT = Path(__file__).parents[2]
+
+
+
+def test_a_freed_slot_goes_to_a_run_before_waiting_points() -> None:
+    slots = Slots(1)
+    order: list[str] = []
+    release = threading.Event()
+
+    def take(name: str, priority: int) -> None:
+        with slots.take(priority) as got:
+            assert got
+            order.append(name)
+            if name == "first":
+                release.wait(5)
+
+    first = threading.Thread(target=take, args=("first", POINT_PRIORITY))
+    first.start()
+    while slots.in_use() == 0:
+        time.sleep(0.01)
+    waiters = [threading.Thread(target=take, args=(n, p)) for n, p in
+               (("point 1", POINT_PRIORITY), ("point 2", POINT_PRIORITY), ("run", RUN_PRIORITY))]
+    for w in waiters:
+        w.start()
+        time.sleep(0.05)  # in this order
+    release.set()
+    for t in [first, *waiters]:
+        t.join(5)
+    assert order == ["first", "run", "point 1", "point 2"]
+
+
+def test_a_cancelled_waiter_leaves_the_line() -> None:
+    slots = Slots(1)
+    cancel = threading.Event()
+    with slots.take(RUN_PRIORITY) as got:
+        assert got
+        cancel.set()
+        with slots.take(POINT_PRIORITY, cancel) as waited:
+            assert not waited
+    with slots.take(POINT_PRIORITY) as got:  # the line is empty again
+        assert got and slots.in_use() == 1
+
+
+class Timeline:
+    """When each run and each sweep point started and ended."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, str]] = []
+        self.lock = threading.Lock()
+
+    def add(self, what: str, name: str) -> None:
+        with self.lock:
+            self.events.append((what, name))
+
+
+def test_a_run_submitted_during_a_sweep_goes_between_its_points(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    timeline = Timeline()
+
+    def point(task: PointTask, procs: Any = None) -> PointOutcome:  # stands in for a `cosim5g run` process
+        timeline.add("start", task.point.label())
+        time.sleep(0.3)
+        timeline.add("end", task.point.label())
+        return PointOutcome(task.point.key, task.run_id, "completed", None, task.runs_dir / task.run_id, 0.3,
+                            {"tasks": 0})
+
+    def execute(sc: Scenario, results_root: Path, on_progress: Any = None, cancel: Any = None,
+                run_id: str | None = None) -> RunResult:
+        assert run_id is not None
+        timeline.add("start", "run")
+        time.sleep(0.1)
+        timeline.add("end", "run")
+        return RunResult(run_id, "completed", results_root / run_id, {"sim_time_s": 1.0})
+
+    monkeypatch.setattr(executors, "run_point", point)
+    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", ROOT / "configs" / "scenarios",
+                      slots=1, max_queued=4, execute=execute, make_executor=lambda s: LocalExecutor(1, slots=s))
+    try:
+        from experiments.spec import parse_spec
+
+        spec = parse_spec({"name": "s", "base": "baseline", "seeds": 1, "grid": {"loops": [2, 4, 6, 8]},
+                           "set": {"duration_s": 5, "detailed_loops": 0}}, ROOT / "configs" / "scenarios",
+                          allow_paths=False)
+        sweep_id, points = jobs.submit_sweep(spec)
+        assert points == 4
+        while not timeline.events:
+            time.sleep(0.02)
+        run_id = jobs.submit_run(load_scenario(ROOT / "configs" / "scenarios" / "smoke.yaml"))
+        deadline = time.monotonic() + 30
+        while jobs.queued() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert jobs.store.get(run_id, JobKind.RUN)["state"] == "completed"
+        assert jobs.store.get(sweep_id, JobKind.SWEEP)["state"] == "completed"
+    finally:
+        jobs.close()
+    starts = [name for what, name in timeline.events if what == "start"]
+    # The run waited for the point in flight only, and nothing ran beside anything else.
+    assert starts.index("run") == 1, starts
+    assert all(timeline.events[i][0] == "start" and timeline.events[i + 1] == ("end", timeline.events[i][1])
+               for i in range(0, len(timeline.events), 2)), timeline.events
+
+
+def test_the_queue_limit_counts_runs_and_sweeps_together(tmp_path: Path) -> None:
+    hold = threading.Event()
+
+    def execute(sc: Scenario, results_root: Path, on_progress: Any = None, cancel: Any = None,
+                run_id: str | None = None) -> RunResult:
+        assert run_id is not None and cancel is not None
+        while not (hold.is_set() or cancel.is_set()):
+            time.sleep(0.01)
+        return RunResult(run_id, "completed", results_root / run_id, {})
+
+    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", ROOT / "configs" / "scenarios",
+                      slots=1, max_queued=2, execute=execute)
+    try:
+        smoke = load_scenario(ROOT / "configs" / "scenarios" / "smoke.yaml")
+        first = jobs.submit_run(smoke)
+        jobs.submit_run(smoke)
+        with pytest.raises(TooMuchWork, match=r"2 runs and sweeps .* max_queued"):
+            jobs.submit_run(smoke)
+        assert jobs.cancel(first)
+        deadline = time.monotonic() + 10
+        while jobs.queued() > 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        jobs.submit_run(smoke)  # the cancelled run freed its place
+        hold.set()
+    finally:
+        jobs.close()
+
+
+def test_a_store_of_an_older_coordinator_is_adopted(tmp_path: Path) -> None:
+    db = sqlite3.connect(tmp_path / "old.db")
+    db.execute("CREATE TABLE runs (run_id TEXT PRIMARY KEY, scenario TEXT NOT NULL, config_json TEXT NOT NULL, "
+               "status TEXT NOT NULL, reason TEXT, created_s REAL NOT NULL, started_s REAL, finished_s REAL, "
+               "sim_time_s REAL, real_time_factor REAL, kpis_json TEXT, results_dir TEXT)")
+    db.execute("CREATE TABLE sweeps (sweep_id TEXT PRIMARY KEY, name TEXT NOT NULL, spec_json TEXT NOT NULL, "
+               "state TEXT NOT NULL, reason TEXT, created_s REAL NOT NULL, started_s REAL, finished_s REAL, "
+               "sweep_dir TEXT NOT NULL)")
+    db.execute("INSERT INTO runs VALUES ('r1', 'smoke', '{\"duration_s\": 2}', 'completed', NULL, 1, 2, 3, 2.0, "
+               "1.5, '{\"tasks\": 3}', '/r/r1')")
+    db.execute("INSERT INTO sweeps VALUES ('s1', 'quick', '{\"name\": \"quick\"}', 'running', NULL, 4, 5, NULL, '/s/s1')")
+    db.commit()
+    db.close()
+    store = JobStore(tmp_path / "old.db")
+    run = store.get("r1", JobKind.RUN)
+    assert run is not None and (run["state"], run["request"], run["kpis"], run["dir"]) == (
+        "completed", {"duration_s": 2}, {"tasks": 3}, "/r/r1")
+    [sweep] = store.list(JobKind.SWEEP, ("running",))
+    assert (sweep["job_id"], sweep["request"], sweep["dir"]) == ("s1", {"name": "quick"}, "/s/s1")
+    assert store.get("s1", JobKind.RUN) is None  # a sweep is no run
+    store.close()
+    tables = {r[0] for r in sqlite3.connect(tmp_path / "old.db").execute("SELECT name FROM sqlite_master")}
+    assert "runs" not in tables and "sweeps" not in tables
