@@ -136,7 +136,7 @@ train-perception: install-train ## render the pose data set, train the Edge pose
 	$(BIN)/python -m training.perception.train --regenerate
 	$(BIN)/python -m training.perception.dataset --split test --episodes 10
 	$(BIN)/python -m benchmarks.perception_accuracy --record
-	$(BIN)/python -m training.frame_model
+	$(BIN)/python -m training.measure_frames
 
 # The full path trains one PPO policy per lambda (two at a time, one core each, about 15 min on
 # two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 runs every step
@@ -148,7 +148,7 @@ policy-network: $(BIN)/cosim5g ## re-measure the policy environment's network ta
 	$(BIN)/python benchmarks/policy_network_table.py
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
-	$(BIN)/python -m training.frame_model
+	$(BIN)/python -m training.measure_frames
 
 clean: ## remove results and caches (keeps .venv)
 	rm -rf results .pytest_cache .ruff_cache .mypy_cache build/native

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from domain.codec import decode_depth_delta_zlib, encode_depth_delta_zlib
-from domain.scenes import working_cell
+from domain.offline_render import working_cell
 from domain.sensor import decimate_depth, sensor_depth_mm, sensor_for
 from fabric.seeding import rng
 from scenario.schema import parse_scenario

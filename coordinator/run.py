@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.conductor import Conductor, Progress, RunFailed
-from coordinator.frame_models import FrameModelError, provide_frame_model
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
+from coordinator.provision import FrameModelError, provide_frame_model
 from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
 from fabric import keys
 from fabric.tables import write_json

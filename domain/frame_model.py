@@ -1,6 +1,6 @@
 """The abstract loops' model of a detailed loop's camera and estimator (DESIGN 6): compressed
 frame sizes and the pose estimator's error and misses, measured on real frames by
-``python -m training.frame_model``. The platform ships the model of the default camera
+``python -m training.measure_frames``. The platform ships the model of the default camera
 (``domain/data/frame_model.json``); a scenario whose camera differs in anything that shapes a
 compressed frame (``CAMERA_KEYS``) gets a model measured for its own settings on first use, kept
 in a cache (``cache_path``) and copied into each run's directory (``RUN_FILE``). A model is only

@@ -16,7 +16,7 @@ The renderer gives ideal depth and colour; a real active-stereo camera does not.
 - Colour: photon shot noise plus read noise, ``sd = sqrt(read^2 + gain * I)`` digital numbers.
 
 These are what make real depth compress much worse than clean rendered depth; the camera
-defaults (resolution, JPEG quality) are chosen with them on (training/frame_model.py).
+defaults (resolution, JPEG quality) are chosen with them on (training/measure_frames.py).
 """
 
 from __future__ import annotations

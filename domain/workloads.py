@@ -78,7 +78,7 @@ def build_jobs(frames: int = 4) -> dict[str, Callable[[], Any]]:
     from domain.codec import decode_frame, encode_frame
     from domain.controller import PickController
     from domain.estimator import make_estimator
-    from domain.scene import SERVO_LAG_S
+    from domain.hall import SERVO_LAG_S
     from domain.sensor import sense, sensor_depth_mm, sensor_for
     from domain.world import World
     from fabric import host_speed

@@ -25,7 +25,7 @@ import numpy as np
 
 from domain import cell_geometry as g
 from domain.arm import CUP_BODY, CUP_RADIUS_M, HOME_Q, JOINTS, N_JOINTS, TCP_SITE
-from domain.scene import build_model, object_pool_size, park_position
+from domain.hall import build_model, object_pool_size, park_position
 from fabric import metrics
 from scenario.schema import Scenario
 
@@ -571,11 +571,6 @@ class World:
         if seen is None:
             return {"q": [float(v) for v in self.data.qpos[c.qadr]], "gripped": c.gripped is not None}
         return {"q": [float(v) for v in seen[0][c.qadr]], "gripped": seen[2][cell][0]}
-
-    def tool_position(self, cell: int) -> np.ndarray:
-        """Cup lip centre of ``cell`` (cell frame), as of the last step."""
-        c = self.cells[cell]
-        return self.data.site_xpos[c.tcp] - c.origin
 
     def objects(self, cell: int) -> list[dict[str, Any]]:
         """Ground truth of the parts in play in ``cell`` (cell frame), by task id."""

@@ -115,7 +115,8 @@ class Federate:
 
     def __init__(self, ctx: FederateContext, bus: Bus) -> None:
         self.ctx = ctx
-        self.name = ctx.name
+        # Names become key segments (fabric.keys): refused here, once, rather than on every send.
+        self.name = keys.check_name(ctx.name, "federate name")
         self.scenario = ctx.scenario
         self.bus = bus
         self.now = 0

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 
 ROOT = "cosim"
-DATA_PLANES = ("sense", "act", "net", "obs")
+DATA_PLANES = ("sense", "act", "net")
 _NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
 
 

@@ -35,9 +35,6 @@ class Message:
     blob: bytes | None = None
     window: int = 0  # window in which it was sent: the barrier counts per sending window
 
-    def order_key(self) -> tuple[int, str, int]:
-        return (self.t_us, self.src, self.seq)
-
     def encode(self) -> bytes:
         return msgpack.packb(
             [SCHEMA_VERSION, self.t_us, self.src, self.dst, self.seq, self.plane, self.kind,

@@ -141,7 +141,7 @@ class CameraConfig(Strict):
     """The cell cameras: a D435-class RGB-D sensor and the camera node's compression.
 
     The defaults give about 35 kB per frame, 8.5 Mbit/s per loop at 30 frame/s, with the sensor
-    model on (measured by ``python -m training.frame_model``, docs in docs/perception.md)."""
+    model on (measured by ``python -m training.measure_frames``, docs in docs/perception.md)."""
 
     fps: int = Field(default=30, ge=1, le=90, description="frames per second")
     width_px: int = Field(default=640, ge=64, le=1920, description="image width, pixels")

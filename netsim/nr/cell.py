@@ -361,11 +361,11 @@ class NrCell(Cell):
             self._discard_expired()
         release = self._dl_release
         while release and release[0][0] <= s:
-            self._harq_dl.busy[release.popleft()[1]] -= 1
+            self._harq_dl.release(release.popleft()[1])
         # PDCCH, then the data symbols in air order: PDSCH, PUSCH, PUCCH.
-        if self._ul_known or self._harq_ul.retx:
+        if self._ul_known or self._harq_ul.pending():
             self._schedule_ul(s, s + self._k2)
-        if self._dl_active or self._harq_dl.retx:
+        if self._dl_active or self._harq_dl.pending():
             self._run_dl(s)
         grants = self._ul_pipeline.pop(s, None)
         if self._configured_grant:
@@ -380,7 +380,7 @@ class NrCell(Cell):
 
     def has_pending(self) -> bool:
         return bool(
-            self._staged or self._ul_pipeline or self._harq_ul.retx or self._harq_dl.retx
+            self._staged or self._ul_pipeline or self._harq_ul.pending() or self._harq_dl.pending()
             or self._ul_known or self._sr_candidates or self._dl_active
             or any(b.bytes for b in self._ul_buf))
 
@@ -698,7 +698,7 @@ class NrCell(Cell):
             pos = len(self._cg_occasions(target)) * cfg.cg_prb
         max_ues = cfg.max_ul_ues_per_slot
         count = 0
-        for tb, start in self._due_retransmissions(harq, s, max_ues, pos, n_prb, taken):
+        for tb, start in harq.take_due(s, max_ues, pos, n_prb, taken):
             grants.append(_Grant(tb.ue, start, tb.n_prb, tb.mcs, tb.tbs_bits, tb.cbs_bits,
                                  tb.n_cb, 0, tb, self._rand_ctrl() < cfg.pdcch_miss_prob,
                                  False, False))
@@ -707,9 +707,8 @@ class NrCell(Cell):
         if self._ul_known and count < max_ues and pos < n_prb:
             if self._wb_stale_ul:
                 self._update_wideband(True)
-            busy, n_proc = harq.busy, harq.n_processes
             # Set order is fine: every scheduler's ranking ends with a total order on the UE.
-            candidates = [u for u in self._ul_known if u not in taken and busy[u] < n_proc]
+            candidates = [u for u in self._ul_known if u not in taken and harq.has_free_process(u)]
             gnb_bytes = self._gnb_ul_bytes
             extra = 8 * cfg.bsr_bytes
             for u in self._sched_ul.ranked(candidates, self._ul_prio, self._rate_ul, s, self._urgency):
@@ -735,7 +734,7 @@ class NrCell(Cell):
                     self._ul_known.discard(u)
                 self._ue_grants[u] += 1
                 self._ue_grant_bytes[u] += payload
-                busy[u] += 1  # the process is reserved by the grant
+                harq.occupy(u)  # the process is reserved by the grant
                 self._sched_ul.served(u, fmt.tbs_bits, s)
                 pos += n
                 count += 1
@@ -792,7 +791,7 @@ class NrCell(Cell):
                     self._restore_ul_request(u, g)
                     continue
                 buf = self._ul_buf[u]
-                if g.configured and not (buf.bytes and harq.busy[u] < harq.n_processes):
+                if g.configured and not (buf.bytes and harq.has_free_process(u)):
                     continue  # unused configured-grant occasion
                 queued = buf.bytes
                 segments = buf.fill(g.payload_bytes) if queued else []
@@ -807,10 +806,10 @@ class NrCell(Cell):
                     self._ul_known.discard(u)
                 if not segments:
                     if not g.configured:
-                        harq.busy[u] -= 1  # padding only: no HARQ process needed
+                        harq.release(u)  # padding only: no HARQ process needed
                     continue
                 if g.configured:
-                    harq.busy[u] += 1
+                    harq.occupy(u)
                 # fill takes exactly the bytes it puts in segments out of the buffer.
                 tb = TransportBlock(u, segments, g.tbs_bits, g.mcs, g.n_prb, g.cbs_bits, g.n_cb,
                                     queued - buf.bytes)
@@ -827,37 +826,19 @@ class NrCell(Cell):
             self._account("ul", u, tb, ok, self._la_ul, ok)
             if ok:
                 self._deliver(tb, True)
-                harq.busy[u] -= 1
+                harq.release(u)
             else:
                 self._after_failure(tb, s + 1, harq, True)
 
     def _restore_ul_request(self, u: int, g: _Grant) -> None:
         """A grant that carried nothing: free its HARQ process and give the gNB back what it
         knew of the UE's request (a pending SR, or the bytes the grant was sized for)."""
-        self._harq_ul.busy[u] -= 1
+        self._harq_ul.release(u)
         if g.from_sr:
             self._gnb_sr[u] = True
         else:
             self._gnb_ul_bytes[u] += g.payload_bytes
         self._ul_known.add(u)
-
-    @staticmethod
-    def _due_retransmissions(harq: HarqEntity, s: int, max_ues: int, pos: int, n_prb: int,
-                             taken: set[int]) -> list[tuple[TransportBlock, int]]:
-        """HARQ retransmissions to send in slot ``s``, each with its first PRB: due by now, one
-        per UE (marked in ``taken``), at most ``max_ues``, fitting from PRB ``pos`` on; the
-        others stay queued in their order."""
-        out: list[tuple[TransportBlock, int]] = []
-        waiting = []
-        for tb in harq.retx:
-            if tb.ready_slot > s or len(out) >= max_ues or tb.ue in taken or pos + tb.n_prb > n_prb:
-                waiting.append(tb)
-                continue
-            out.append((tb, pos))
-            taken.add(tb.ue)
-            pos += tb.n_prb
-        harq.retx = waiting
-        return out
 
     def _account(self, link: str, u: int, tb: TransportBlock, ok: bool, la: LinkAdaptation,
                  ack: bool) -> None:
@@ -880,12 +861,11 @@ class NrCell(Cell):
             self._residual["ul" if ul else "dl"] += 1
             self._lose(tb, ul)
             if ul:
-                harq.busy[tb.ue] -= 1
+                harq.release(tb.ue)
             else:
                 self._dl_release.append((ready_slot, tb.ue))
         else:
-            tb.ready_slot = ready_slot
-            harq.retx.append(tb)
+            harq.queue_retx(tb, ready_slot)
 
     def _run_pucch(self, s: int) -> None:
         """SRs of UEs with a triggered BSR and no grant on its way."""
@@ -912,8 +892,7 @@ class NrCell(Cell):
             for g in self._ul_pipeline.pop(slot):
                 u = g.ue
                 if g.tb is not None:
-                    g.tb.ready_slot = s
-                    harq.retx.append(g.tb)
+                    harq.queue_retx(g.tb, s)
                     continue
                 self._ue_grants[u] -= 1
                 self._ue_grant_bytes[u] -= g.payload_bytes
@@ -929,7 +908,7 @@ class NrCell(Cell):
         pos = 0
         count = 0
         taken: set[int] = set()
-        for tb, start in self._due_retransmissions(harq, s, max_ues, pos, n_prb, taken):
+        for tb, start in harq.take_due(s, max_ues, pos, n_prb, taken):
             self._dl_transmit(s, tb, start)
             pos = start + tb.n_prb
             count += 1
@@ -937,13 +916,12 @@ class NrCell(Cell):
             return
         if self._wb_stale_dl:
             self._update_wideband(False)
-        busy, n_proc = harq.busy, harq.n_processes
         candidates = []
         for u in sorted(self._dl_active):
             if not self._dl_buf[u].bytes:
                 self._dl_active.discard(u)
                 self._dl_prio[u] = 1 << 30
-            elif u not in taken and busy[u] < n_proc:
+            elif u not in taken and harq.has_free_process(u):
                 candidates.append(u)
         la = self._la_dl
         for u in self._sched_dl.ranked(candidates, self._dl_prio, self._rate_dl, s, self._urgency):
@@ -965,7 +943,7 @@ class NrCell(Cell):
                 continue
             tb = TransportBlock(u, segments, fmt.tbs_bits, mcs, n, fmt.cbs_bits, fmt.n_cb,
                                 queued - buf.bytes)
-            busy[u] += 1
+            harq.occupy(u)
             self._sched_dl.served(u, fmt.tbs_bits, s)
             self._dl_transmit(s, tb, pos)
             pos += n

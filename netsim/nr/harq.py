@@ -35,19 +35,28 @@ class TransportBlock:
 
 
 class HarqEntity:
-    """HARQ processes of every UE on one link, and the TBs waiting for a retransmission."""
+    """HARQ processes of every UE on one link, and the TBs waiting for a retransmission. Its
+    state changes only through these methods."""
 
-    __slots__ = ("busy", "n_processes", "max_tx", "chase", "retx")
+    __slots__ = ("_busy", "n_processes", "max_tx", "chase", "_retx")
 
     def __init__(self, n_ue: int, n_processes: int, max_transmissions: int, chase: bool) -> None:
-        self.busy = [0] * n_ue
+        self._busy = [0] * n_ue
         self.n_processes = n_processes
         self.max_tx = max_transmissions
         self.chase = chase
-        self.retx: list[TransportBlock] = []  # in the order they failed
+        self._retx: list[TransportBlock] = []  # in the order they failed
 
     def has_free_process(self, ue: int) -> bool:
-        return self.busy[ue] < self.n_processes
+        return self._busy[ue] < self.n_processes
+
+    def occupy(self, ue: int) -> None:
+        """A process of ``ue`` is taken (by a grant or a new TB)."""
+        self._busy[ue] += 1
+
+    def release(self, ue: int) -> None:
+        """A process of ``ue`` is free again (its TB decoded and known, or lost, or the grant unused)."""
+        self._busy[ue] -= 1
 
     def combine(self, tb: TransportBlock, sinr_linear: float) -> float:
         """Register one transmission received at ``sinr_linear``; the SINR to decode at."""
@@ -60,9 +69,28 @@ class HarqEntity:
     def exhausted(self, tb: TransportBlock) -> bool:
         return tb.tx_count >= self.max_tx
 
-    def ready_retx(self, slot: int) -> list[TransportBlock]:
-        """Retransmissions the scheduler may place at the PDCCH of ``slot``, oldest first."""
-        return [tb for tb in self.retx if tb.ready_slot <= slot]
+    def queue_retx(self, tb: TransportBlock, ready_slot: int) -> None:
+        """``tb`` is to be sent again, from the PDCCH of ``ready_slot`` on (its process stays taken)."""
+        tb.ready_slot = ready_slot
+        self._retx.append(tb)
+
+    def take_due(self, slot: int, max_ues: int, pos: int, n_prb: int,
+                 taken: set[int]) -> list[tuple[TransportBlock, int]]:
+        """Retransmissions to send in ``slot``, each with its first PRB: due by now, one per UE
+        (marked in ``taken``), at most ``max_ues``, fitting from PRB ``pos`` on; the others stay
+        queued in their order."""
+        out: list[tuple[TransportBlock, int]] = []
+        waiting = []
+        for tb in self._retx:
+            if tb.ready_slot > slot or len(out) >= max_ues or tb.ue in taken or pos + tb.n_prb > n_prb:
+                waiting.append(tb)
+                continue
+            out.append((tb, pos))
+            taken.add(tb.ue)
+            pos += tb.n_prb
+        self._retx = waiting
+        return out
 
     def pending(self) -> bool:
-        return bool(self.retx)
+        """Whether a retransmission is queued."""
+        return bool(self._retx)

@@ -78,11 +78,6 @@ def eesm_betas(name: McsTableName) -> tuple[float, ...]:
     return tuple(_load("eesm_beta.json")["betas"][name])
 
 
-def re_per_prb(n_symbols: int, dmrs_re_per_prb: int, overhead_re_per_prb: int = 0) -> int:
-    """N'_RE: resource elements per PRB for data in a PxSCH of ``n_symbols`` symbols (5.1.3.2)."""
-    return 12 * n_symbols - dmrs_re_per_prb - overhead_re_per_prb
-
-
 def transport_block_size(
     n_prb: int, n_re_per_prb: int, qm: int, rate: float, layers: int = 1
 ) -> int:

@@ -19,9 +19,9 @@ from domain.codec import slot_after, split_packets
 from domain.controller import PickController
 from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
 from domain.frame_model import RUN_FILE, camera_settings, model_for
+from domain.hall import SERVO_LAG_S
 from domain.kinematics import ArmKinematics
 from domain.policy import Qos
-from domain.scene import SERVO_LAG_S
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
 from fabric.federate import NEVER_US, Federate

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from coordinator.frame_models import provide_frame_model
+from coordinator.provision import provide_frame_model
 from domain.frame_model import (
     PATH,
     RUN_FILE,
@@ -30,7 +30,7 @@ def empty_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def measured_for(settings: dict, path: Path, frame_bytes: list[int]) -> Path:
-    """A model file as ``training.frame_model`` writes it, for ``settings``."""
+    """A model file as ``training.measure_frames`` writes it, for ``settings``."""
     data = json.loads(PATH.read_text())
     data["settings"].update(settings)
     data["frame_bytes"] = frame_bytes

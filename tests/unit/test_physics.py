@@ -12,8 +12,8 @@ import pytest
 from domain import cell_geometry as g
 from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
 from domain.controller import PickController
+from domain.hall import build_mjcf, object_pool_size
 from domain.kinematics import ArmKinematics
-from domain.scene import build_mjcf, object_pool_size
 from domain.world import CHECK_PERIOD_US, World, spawn_plan
 from fabric import native
 from scenario.schema import ScenarioError, parse_scenario

@@ -1,6 +1,6 @@
 """Labelled RGB-D frames rendered by our physics scene, for training and testing the pose network.
 
-Each episode is one cell working for a few seconds (domain/scenes.py: parts arrive and
+Each episode is one cell working for a few seconds (domain/offline_render.py: parts arrive and
 the real controller picks them on ground truth) under its own randomised conditions, all drawn
 from a seeded stream: camera resolution, part sizes, yaw and lateral spread, belt speed and spawn
 period, the key light's intensity, tint and direction, ambient and head light, the parts' colour,
@@ -114,7 +114,7 @@ def render_frames(sc: Any, times_us: list[int], cond: dict[str, Any] | None = No
     from domain import cell_geometry as g
     from domain.cell_geometry import CameraIntrinsics
     from domain.codec import encode_frame
-    from domain.scenes import working_cell
+    from domain.offline_render import working_cell
     from domain.sensor import sense, sensor_depth_mm, sensor_for
     from domain.world import World
     from fabric.seeding import rng

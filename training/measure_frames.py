@@ -1,14 +1,14 @@
 """Measures what the abstract loops need from the detailed ones: the compressed frame sizes of the
 real camera pipeline and the error of the real pose estimator, on frames rendered by our scene.
 
-``python -m training.frame_model [--seconds S] [--out PATH] [--estimator NAME] [--scenario YAML]``
+``python -m training.measure_frames [--seconds S] [--out PATH] [--estimator NAME] [--scenario YAML]``
 renders one cell working (parts arriving twice as often as in a default run, the real controller
-picking them: domain/scenes.py) at the camera's frame rate, passes every frame through the
+picking them: domain/offline_render.py) at the camera's frame rate, passes every frame through the
 camera node's pipeline with the default camera settings (D435 sensor model, JPEG + decimated
 lossless depth) or those of ``--scenario``, runs the Edge's estimator on the decoded frame and
 compares with ground truth (training/perception/evaluate.py: parts whose top face is at least 80%
 visible). Writes ``domain/data/frame_model.json`` (the shipped model of the default camera) or
-``--out``. A run whose camera has no model yet runs this with its scenario (coordinator.frame_models).
+``--out``. A run whose camera has no model yet runs this with its scenario (coordinator.provision).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 controller, fed ground-truth poses, picks them, so rendered frames show what a run's camera sees
 (parts on the belt, the arm over them, a part in the cup, parts on the platform).
 
-Used to measure frame sizes and estimator error (training/frame_model.py) and to render the
+Used to measure frame sizes and estimator error (training/measure_frames.py) and to render the
 pose estimator's training and test sets (training/perception/). No network and no latencies: the
 controller's commands apply at once; only what the camera sees matters here.
 """

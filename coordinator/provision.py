@@ -1,6 +1,6 @@
 """The frame model a run's abstract loops use (``domain.frame_model``): the one measured for the
 scenario's camera settings, found in the cache or the shipped data, or else measured now -- on
-first use, by ``python -m training.frame_model`` with the run's scenario (about a minute), under
+first use, by ``python -m training.measure_frames`` with the run's scenario (about a minute), under
 a lock so that parallel runs of a sweep measure it once -- and copied into the run directory,
 where the loops federate reads it in either runtime.
 """
@@ -57,7 +57,7 @@ def _measure(settings: dict[str, object], scenario_path: Path) -> Path:
         env = dict(os.environ)
         env.setdefault("MUJOCO_GL", "egl")
         try:
-            proc = subprocess.run([sys.executable, "-m", "training.frame_model", "--scenario", str(scenario_path),
+            proc = subprocess.run([sys.executable, "-m", "training.measure_frames", "--scenario", str(scenario_path),
                                    "--out", str(out)], capture_output=True, text=True, env=env,
                                   timeout=MEASURE_TIMEOUT_S)
         except subprocess.TimeoutExpired:
