@@ -55,7 +55,7 @@ CODECS: dict[str, Callable[[np.ndarray], bytes]] = {
 
 def frames(n: int) -> list[np.ndarray]:
     sc = parse_scenario({"loops": 1, "detailed_loops": 1, "duration_s": 2.0 + n * 0.5,
-                         "cell": {"object_period_s": 2.0}})
+                         "work_cell": {"object_period_s": 2.0}})
     cam = sc.camera
     sensor = sensor_for(cam)
     assert sensor is not None

@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=40.0, help="simulated time per configuration")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="scenario override, e.g. cell.object_yaw_spread_deg=180 (repeatable)")
+                    help="scenario override, e.g. work_cell.object_yaw_spread_deg=180 (repeatable)")
     ap.add_argument("--pose-error-mm", type=float, default=None,
                     help="also run with tracked poses of this error sd (mm per axis)")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     notes = (f"Task success rate (%), a pose per camera frame at {base.camera.fps} frame/s, "
              f"{args.loops} cells x {args.seconds:g} s simulated per configuration "
              f"({tasks[0]}-{tasks[-1]} finished tasks each), seed {args.seed}, belt "
-             f"{base.cell.belt_speed_m_s} m/s, a part every {base.cell.object_period_s} s, "
+             f"{base.work_cell.belt_speed_m_s} m/s, a part every {base.work_cell.object_period_s} s, "
              f"estimates older than {base.robot.max_estimate_age_ms:g} ms make the arm hold. "
              f"comp: delay-aware prediction p + v * age; naive: last pose as is. "
              f"Overrides: {', '.join(args.set) or 'none'}. Wall time {wall:.0f} s.")

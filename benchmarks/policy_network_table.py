@@ -3,7 +3,7 @@
 The environment (training/policy/) has no netsim: a kept camera frame reaches the Edge after a
 latency drawn from, or is lost with a probability read from, a table indexed by the cell's
 offered uplink load and the flows' latency budget L. This script makes that table by driving
-the NR cell model (netsim.nr.cell.NrCell, the scenario's hall and UE layout) with N cameras that
+the NR cell model (netsim.nr.radio_cell.NrCell, the scenario's hall and UE layout) with N cameras that
 capture at 30 frame/s, keep each frame with probability PDP (seeded), send frames with the sizes
 measured from real compressed frames (domain/data/frame_model.json) cut into IP packets, all
 under the same delay budget; each frame that arrives whole sends a pose packet downlink to the
@@ -45,8 +45,8 @@ import numpy as np  # noqa: E402
 from domain.codec import slot_after, split_packets  # noqa: E402
 from domain.frame_model import load_frame_model  # noqa: E402
 from fabric.seeding import rng as named_rng  # noqa: E402
-from netsim.cell import FlowQos, Packet  # noqa: E402
-from netsim.nr.cell import NrCell  # noqa: E402
+from netsim.nr.radio_cell import NrCell  # noqa: E402
+from netsim.radio_cell import FlowQos, Packet  # noqa: E402
 from scenario.schema import Scenario  # noqa: E402
 
 OUT = ROOT / "training" / "policy" / "data" / "network_table.json"

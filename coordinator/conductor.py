@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from coordinator.run_state import RunState
 from fabric import keys
 from fabric.bus import Bus
 from fabric.messages import Advance, Done, MessageError, Ready, Stop, Stopped
@@ -29,7 +30,7 @@ from fabric.messages import Advance, Done, MessageError, Ready, Stop, Stopped
 class RunFailed(Exception):
     """The run cannot go on; ``reason`` says which federate and why."""
 
-    def __init__(self, reason: str, federate: str | None = None, status: str = "failed") -> None:
+    def __init__(self, reason: str, federate: str | None = None, status: RunState = RunState.FAILED) -> None:
         super().__init__(reason)
         self.reason = reason
         self.federate = federate

@@ -84,7 +84,7 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
                    for ue, b in sorted(zip(per_ue["ue"], per_ue["size_bytes_sum"], strict=True))}
     lost_counts = pc.value_counts(pc.filter(pk["lost_cause"], pc.invert(delivered))).to_pylist()
     placed = sum(1 for t in tasks if t["success"])
-    by_cell: Counter[int] = Counter(t["cell"] for t in tasks)
+    by_cell: Counter[int] = Counter(t["work_cell"] for t in tasks)
     jb = _read(run_dir / "jobs.parquet", ["node", "kind", "timing", "duration_us", "queue_us"])
     role = pc.replace_substring_regex(jb["node"], pattern="-.*$", replacement="")
     # Per timing too: the abstract loops' model-timed jobs must not hide the detailed loops'
@@ -158,12 +158,12 @@ def loop_kpis(run_dir: Path, loops: int, detailed_loops: int, sim_time_s: float)
     """
     sim = max(sim_time_s, 1e-9)
     rows: list[dict[str, Any]] = [{"loop": i, "detailed": i < detailed_loops} for i in range(loops)]
-    tasks = _column(run_dir / "tasks.parquet", ["cell", "outcome", "reason"])
+    tasks = _column(run_dir / "tasks.parquet", ["work_cell", "outcome", "reason"])
     for r in rows:
         r.update(tasks=0, placed=0, missed=0, dropped=0, failure_causes="")
     if tasks is not None:
         for i, r in enumerate(rows):
-            mine = tasks["cell"] == i
+            mine = tasks["work_cell"] == i
             outcome = tasks["outcome"][mine]
             reason = tasks["reason"][mine]
             ended = outcome != "unfinished"

@@ -24,6 +24,7 @@ from coordinator.conductor import Conductor, Progress, RunFailed
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from coordinator.provision import FrameModelError, provide_frame_model
 from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
+from coordinator.run_state import RunState
 from fabric import keys
 from fabric.tables import write_json
 from fabric.zenoh_bus import ZenohBus
@@ -31,9 +32,6 @@ from scenario.schema import Scenario, dump_scenario
 from services.roles import ROLES, federates
 
 log = logging.getLogger(__name__)
-
-STATES = ("pending", "running", "completed", "failed", "cancelled", "timed_out")
-
 
 def new_run_id(scenario: Scenario) -> str:
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
@@ -140,13 +138,13 @@ def execute_run(
     scenario_path = run_dir / "config.yaml"
     scenario_path.write_text(dump_scenario(scenario))
     write_json(run_dir / "versions.json", versions())
-    write_json(run_dir / "status.json", {"run_id": run_id, "status": "running", "seed": scenario.seed})
+    write_json(run_dir / "status.json", {"run_id": run_id, "status": RunState.RUNNING, "seed": scenario.seed})
 
     wall0 = time.monotonic()
     conducted_s: float | None = None  # wall time of the windows, once they all ran
     port = free_port()
     router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
-    status, reason, failed_federate = "completed", None, None
+    status, reason, failed_federate = RunState.COMPLETED, None, None
     log_tail: list[str] = []
     conductor = None
     stopped: dict[str, Any] = {}
@@ -165,7 +163,7 @@ def execute_run(
 
         def health() -> None:
             if cancel is not None and cancel.is_set():
-                raise RunFailed("cancelled by the user", status="cancelled")
+                raise RunFailed("cancelled by the user", status=RunState.CANCELLED)
             dead = launcher.dead()
             if not dead and liveness.lost:
                 # A dead process closes its connection at once; its runtime may take a moment
@@ -181,7 +179,7 @@ def execute_run(
                 raise RunFailed(f"federate {what} {dead[name]}", federate=name)
             if time.monotonic() > deadline:
                 raise RunFailed(f"run exceeded watchdog.run_timeout_s = {scenario.watchdog.run_timeout_s} s",
-                                status="timed_out")
+                                status=RunState.TIMED_OUT)
 
         conductor = Conductor(router, run_id, [s.name for s in specs], scenario.window_us, scenario.duration_us,
                               scenario.watchdog.window_timeout_s, health, on_progress, groups=groups,
@@ -203,22 +201,22 @@ def execute_run(
         sim_us = conductor.t_us if conductor else 0
     except Exception as exc:  # a coordinator bug must still end the run cleanly
         log.exception("run %s crashed", run_id)
-        status, reason = "failed", f"coordinator error: {type(exc).__name__}: {exc}"
+        status, reason = RunState.FAILED, f"coordinator error: {type(exc).__name__}: {exc}"
     finally:
         try:
             if conductor is not None:
                 liveness.armed = False
                 # Healthy federates write their tables before leaving, also when the run failed.
-                stopped = conductor.stop(status, timeout_s=30.0 if status == "completed" else 3.0)
+                stopped = conductor.stop(status, timeout_s=30.0 if status == RunState.COMPLETED else 3.0)
         finally:
             launcher.stop(grace_s=3.0)
             router.close()
 
     wall_s = time.monotonic() - wall0
     sim_s = min(sim_us, scenario.duration_us) / 1e6
-    if status == "completed" and len(stopped) < len(federates(scenario)):
+    if status == RunState.COMPLETED and len(stopped) < len(federates(scenario)):
         missing = sorted({n for n, _ in federates(scenario)} - set(stopped))
-        status, reason = "failed", f"no final report from {', '.join(missing)}"
+        status, reason = RunState.FAILED, f"no final report from {', '.join(missing)}"
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
     recorded = close_records(run_dir, sim_s)
@@ -232,7 +230,7 @@ def execute_run(
         kpis["loop_kpi_error"] = f"{type(exc).__name__}: {exc}"
     summaries = {name: s.summary for name, s in sorted(stopped.items())}
     edge = summaries.get("edge", {})
-    trace = conductor.trace_hash(stopped) if conductor is not None and status == "completed" else None
+    trace = conductor.trace_hash(stopped) if conductor is not None and status == RunState.COMPLETED else None
     kpis.update({
         "run_id": run_id,
         "scenario": scenario.name,
@@ -295,9 +293,9 @@ def salvage_run(run_dir: Path, reason: str) -> dict[str, Any] | None:
     except (OSError, ValueError):
         pass
     recorded = close_records(run_dir)
-    kpis = {"run_id": status.get("run_id", run_dir.name), "status": "failed", "reason": reason,
+    kpis = {"run_id": status.get("run_id", run_dir.name), "status": RunState.FAILED, "reason": reason,
             "seed": status.get("seed"), "recorded": recorded, "results_dir": str(run_dir)}
     write_json(run_dir / "kpis.json", kpis)
-    write_json(run_dir / "status.json", {**status, "run_id": kpis["run_id"], "status": "failed", "reason": reason})
+    write_json(run_dir / "status.json", {**status, "run_id": kpis["run_id"], "status": RunState.FAILED, "reason": reason})
     return kpis
 

@@ -1,13 +1,13 @@
 """The docker runtime: one cgroup-limited, unprivileged container per federate on a per-run network.
 
 ``DockerLauncher`` implements ``coordinator.launcher.Launcher`` with the docker SDK
-(DESIGN.md sections 5 and 8):
+(docs/architecture.md sec. 5 and 8):
 
 - one bridge network ``cosim5g-<run_id>`` and one container ``cosim5g-<run_id>-<federate>`` per
   federate, all labelled ``cosim5g.run_id=<run_id>`` (containers also ``cosim5g.federate``,
   ``cosim5g.role`` and ``cosim5g.owner``, the coordinator process that started them);
 - the node profile becomes the cgroup: a ``wall``-timed node gets CFS period 10 ms (a short
-  period keeps a throttled job's wall time close to cpu_time / cpus, see DESIGN.md section 5)
+  period keeps a throttled job's wall time close to cpu_time / cpus, see docs/architecture.md sec. 5)
   and quota = cpus x period; a ``cpu``- or ``model``-timed node gets whole cores, ceil(cpus),
   since its durations come from its jobs' CPU time and throttling would only inflate that
   (``cpu_limit_cores``); memory limit with no swap;
@@ -487,11 +487,7 @@ class DockerLauncher(Launcher):
             "MUJOCO_GL": "egl",
             "PYOPENGL_PLATFORM": "egl",
             "HOME": "/tmp",  # the root is read-only; an arbitrary uid has no home anyway
-            "COSIM5G_RUN_ID": run_id,
-            "COSIM5G_FEDERATE": spec.name,
         }
-        if spec.limits.cpus is not None:
-            env["COSIM5G_NODE_CPUS"] = repr(spec.limits.cpus)
         if self.metrics_port:
             env[env_name("metrics_port")] = str(self.metrics_port)  # fabric.metrics
         extra_hosts = {HOST_ALIAS: "host-gateway"} if self.coordinator_on_host else None

@@ -22,7 +22,7 @@ SERVO_LAG_S = 0.02
 JOINT_SPEED_MAX_RAD_S = math.radians(180.0)  # vendor figure for this arm class, every joint
 TCP_SPEED_MAX_M_S = 1.0  # vendor figure for this arm class
 
-# Rest posture: the cup at cell_geometry.HOME_TOOL_POS, pointing down (TOOL_DOWN), elbow up.
+# Rest posture: the cup at work_cell.HOME_TOOL_POS, pointing down (TOOL_DOWN), elbow up.
 # The IK solution for that pose with the base at ARM_BASE_POS / ARM_BASE_YAW (a unit test checks
 # that they agree).
 HOME_Q = (-1.1050, -1.7121, 2.1009, -1.9596, -1.5708, -2.6758)

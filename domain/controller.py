@@ -25,7 +25,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import HOME_Q, JOINT_SPEED_MAX_RAD_S, TCP_SPEED_MAX_M_S
 from domain.kinematics import ArmKinematics, norm
 from scenario.schema import RobotConfig

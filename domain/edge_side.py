@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.codec import slot_after
 from domain.congestion import LoadControl, UplinkMonitor
 from domain.frame_model import load_frame_model
@@ -19,7 +19,7 @@ from domain.policy_features import LIFTED_M, spawn_time_us
 from domain.safety_floor import FloorLimits, safety_floor
 from domain.tracker import Tracker
 from fabric import metrics
-from scenario.schema import CellConfig, EdgeConfig, PolicyConfig, RobotConfig, Scenario
+from scenario.schema import EdgeConfig, PolicyConfig, RobotConfig, Scenario, WorkCellConfig
 
 # An unchanged QoS is signalled again this often: the downlink can lose it.
 QOS_REFRESH_US = 1_000_000
@@ -37,20 +37,20 @@ def update_tracks(tracker: Tracker, capture_us: int, positions: list[np.ndarray]
 class CoDesign:
     """The co-design policy for a set of loops, and which QoS each camera was last told.
 
-    ``cell`` is the scenario's CellConfig (a bare belt speed in m/s is accepted too: the cell
+    ``cell`` is the scenario's WorkCellConfig (a bare belt speed in m/s is accepted too: the cell
     is then known by its speed only); ``loops`` is how many loops share the radio cell and
     ``fps`` the cameras' frame rate; ``limits`` what the safety floor protects (None: the
     scenario's defaults). Per loop it remembers when the newest part it has seen landed on the
     belt, so that a policy knows when the next one is due, and it watches the uplink's frames
     (``monitor``) for the floor's margins and the load control."""
 
-    def __init__(self, cfg: PolicyConfig, cell: CellConfig | float, loops: int = 1,
+    def __init__(self, cfg: PolicyConfig, cell: WorkCellConfig | float, loops: int = 1,
                  fps: float = 30.0, limits: FloorLimits | None = None) -> None:
         self.policy = make_policy(cfg)
         self.controls = cfg.controls  # an ablation may apply only part of the policy's QoS
         self.object_period_s: float | None = None
         self.object_jitter_s = 0.0
-        if isinstance(cell, CellConfig):
+        if isinstance(cell, WorkCellConfig):
             self.belt_speed_m_s, self.object_period_s = cell.belt_speed_m_s, cell.object_period_s
             self.object_jitter_s = cell.object_jitter_s
             if isinstance(self.policy, LearnedPolicy):
@@ -70,7 +70,7 @@ class CoDesign:
     @classmethod
     def for_scenario(cls, sc: Scenario) -> CoDesign:
         """The co-design of a scenario's loops: its policy, cell, loop count and camera rate."""
-        return cls(sc.policy, sc.cell, sc.loops, sc.camera.fps, default_limits(sc.policy, sc))
+        return cls(sc.policy, sc.work_cell, sc.loops, sc.camera.fps, default_limits(sc.policy, sc))
 
     def state(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> LoopState:
         """What the Edge knows of ``loop`` now."""

@@ -14,8 +14,8 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from domain.cell_geometry import CameraIntrinsics
 from domain.detection import Detection
+from domain.work_cell import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The abstract loops' model of a detailed loop's camera and estimator (DESIGN 6): compressed
+"""The abstract loops' model of a detailed loop's camera and estimator (docs/architecture.md sec. 6): compressed
 frame sizes and the pose estimator's error and misses, measured on real frames by
 ``python -m training.measure_frames``. The platform ships the model of the default camera
 (``domain/data/frame_model.json``); a scenario whose camera differs in anything that shapes a

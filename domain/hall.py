@@ -12,7 +12,7 @@ import math
 
 import mujoco
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import SERVO_LAG_S, arm_spec
 from scenario.schema import Scenario
 
@@ -27,8 +27,8 @@ def object_pool_size(sc: Scenario) -> int:
     """Part bodies per cell: enough for every part on the belt at once (belt length / speed,
     divided by the shortest spawn interval), plus the one in the cup and the one settling on the
     platform."""
-    transit_s = 2 * g.BELT_HALF_LENGTH / sc.cell.belt_speed_m_s
-    shortest_s = sc.cell.object_period_s - 2 * sc.cell.object_jitter_s
+    transit_s = 2 * g.BELT_HALF_LENGTH / sc.work_cell.belt_speed_m_s
+    shortest_s = sc.work_cell.object_period_s - 2 * sc.work_cell.object_jitter_s
     return math.ceil(transit_s / max(shortest_s, 0.1)) + 2
 
 
@@ -39,7 +39,7 @@ def park_position(slot: int) -> tuple[float, float, float]:
 
 def _cell_xml(i: int, x: float, y: float, sc: Scenario) -> tuple[str, str]:
     """(worldbody xml, equality xml) of cell ``i`` centred at (x, y), without its arm."""
-    h = sc.cell.object_size_m / 2
+    h = sc.work_cell.object_size_m / 2
     cam_z = g.BELT_TOP_Z + g.CAMERA_HEIGHT_ABOVE_BELT
     px, py = g.PLATFORM_CENTRE
     bx, by, bz = g.ARM_BASE_POS
@@ -51,7 +51,7 @@ def _cell_xml(i: int, x: float, y: float, sc: Scenario) -> tuple[str, str]:
         objects.append(f"""
     <body name="c{i}_obj{k}" pos="{x + ox} {y + oy} {oz}" gravcomp="1">
       <freejoint name="c{i}_obj{k}_free"/>
-      <geom name="c{i}_obj{k}_geom" type="box" size="{h} {h} {h}" mass="{sc.cell.object_mass_kg}"
+      <geom name="c{i}_obj{k}_geom" type="box" size="{h} {h} {h}" mass="{sc.work_cell.object_mass_kg}"
             material="part" friction="0.9 0.01 0.001" contype="0" conaffinity="0"/>
     </body>""")
     body = f"""
@@ -83,7 +83,7 @@ def _cell_xml(i: int, x: float, y: float, sc: Scenario) -> tuple[str, str]:
 
 def _hall_xml(sc: Scenario) -> str:
     bodies, eqs = [], []
-    for i, (x, y) in enumerate(sc.hall.cell_origins(sc.loops)):
+    for i, (x, y) in enumerate(sc.hall.work_cell_origins(sc.loops)):
         b, e = _cell_xml(i, x, y, sc)
         bodies.append(b)
         eqs.append(e)

@@ -20,7 +20,7 @@ import math
 import mujoco
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import TCP_SITE, arm_model
 
 DAMPING = 0.01  # DLS damping (m or rad): small against the singular values the cell allows (>= 0.065)

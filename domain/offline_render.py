@@ -25,7 +25,7 @@ def working_cell(sc: Scenario, spawn_rng: np.random.Generator, frame_times_us: l
     yield (t_us, world) at each of ``frame_times_us`` (ascending), ready to render."""
     world = world or World(sc)
     step = sc.physics_timestep_us
-    ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
+    ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)
     spawns = spawn_plan(sc, spawn_rng, step)
     k_spawn = 0
     t_ctl = 0

@@ -1,4 +1,4 @@
-"""Co-design policies (DESIGN 7): from a loop's control state to its dynamic QoS (PDP_r, L_r).
+"""Co-design policies (docs/architecture.md sec. 7): from a loop's control state to its dynamic QoS (PDP_r, L_r).
 
 All policies share one interface so the Edge, the abstract loops and the training environment
 swap them by name: ``none`` (PDP 1, conventional URLLC), ``fixed`` (constant PDP), ``heuristic``
@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from domain import cell_geometry as g
 from domain import policy_features as F
+from domain import work_cell as g
 from domain.congestion import IDLE_LINK, LinkEstimate
 from domain.tracker import ACCEL_SD, GATE_M
 from scenario.schema import PolicyConfig
@@ -224,7 +224,7 @@ def check_family(info: dict[str, Any], path: Path, cell: Any) -> None:
         lo, hi = family[field]
         value = getattr(cell, field)
         if not lo <= value <= hi:
-            raise ValueError(f"cell.{field} = {value} is outside the family the learned policy {path} "
+            raise ValueError(f"work_cell.{field} = {value} is outside the family the learned policy {path} "
                              f"was trained on ({field} {lo}-{hi}); use a cell of that family or "
                              f"retrain over one that holds it: {TRAIN_COMMAND}")
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 
 if TYPE_CHECKING:
     from domain.policy import LoopState

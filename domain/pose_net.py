@@ -19,9 +19,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from domain import cell_geometry as g
-from domain.cell_geometry import CameraIntrinsics
+from domain import work_cell as g
 from domain.detection import Detection
+from domain.work_cell import CameraIntrinsics
 
 MODEL_DIR = Path(__file__).parent / "models"
 DEFAULT_MODEL = MODEL_DIR / "pose.onnx"

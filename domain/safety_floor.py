@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from domain import cell_geometry as g
 from domain import policy_features as F
+from domain import work_cell as g
 from domain.policy import PICK_TIME_S, LoopState, gate_time_s, pdp_for_deadline, step_up
 
 # How long before a part reaches the pick window the arm may start working on it (it waits at

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from domain.cell_geometry import CameraIntrinsics
+from domain.work_cell import CameraIntrinsics
 from scenario.schema import CameraConfig
 
 MAX_SHADOW_PX = 48  # occlusion shadows wider than this are cut (arm very close to the camera)

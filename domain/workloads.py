@@ -74,12 +74,12 @@ def idle_wake_penalty(pairs: int = 30, idle_s: float = 0.010) -> float:
 def build_jobs(frames: int = 4) -> dict[str, Callable[[], Any]]:
     """Each workload as a closure over inputs prepared once (rendering and the sensor model are
     not timed, as in the federates); ``frames`` rendered captures are cycled through."""
-    from domain.cell_geometry import CameraIntrinsics
     from domain.codec import decode_frame, encode_frame
     from domain.controller import PickController
     from domain.estimator import make_estimator
     from domain.hall import SERVO_LAG_S
     from domain.sensor import sense, sensor_depth_mm, sensor_for
+    from domain.work_cell import CameraIntrinsics
     from domain.world import World
     from fabric import host_speed
     from fabric.seeding import rng
@@ -99,8 +99,8 @@ def build_jobs(frames: int = 4) -> dict[str, Callable[[], Any]]:
     encoded = [encode_frame(rgb, d, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation)
                for rgb, d in captures]
     est, _ = make_estimator(sc.edge.estimator, CameraIntrinsics(cam.width_px, cam.height_px, cam.fovy_deg),
-                            sc.cell.object_size_m)
-    ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
+                            sc.work_cell.object_size_m)
+    ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)
     ctl.on_estimate([{"id": o["task_id"], "t_us": 1_500_000, "p": o["p"], "v": o["v"]}
                      for o in world.objects(0)])
     ctl.on_state(*world.joint_state(0).values())

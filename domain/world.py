@@ -23,7 +23,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import CUP_BODY, CUP_RADIUS_M, HOME_Q, JOINTS, N_JOINTS, TCP_SITE
 from domain.hall import build_model, object_pool_size, park_position
 from fabric import metrics
@@ -56,7 +56,7 @@ def spawn_plan(sc: Scenario, rng: np.random.Generator, step_us: int) -> list[tup
     keyword arguments), on the physics step grid. Spawn jitter, lateral offset, yaw, size and
     mass are drawn from ``rng`` (a spread of 0 draws nothing, so adding a spread to a scenario
     leaves the other draws of the stream unchanged)."""
-    cfg = sc.cell
+    cfg = sc.work_cell
     period = int(cfg.object_period_s * 1e6)
     jitter = int(cfg.object_jitter_s * 1e6)
     plan = []
@@ -96,7 +96,7 @@ class Task:
 
     def row(self) -> dict[str, Any]:
         return {
-            "cell": self.cell, "task_id": self.task_id, "spawn_us": self.spawn_us,
+            "work_cell": self.cell, "task_id": self.task_id, "spawn_us": self.spawn_us,
             "grasp_us": self.grasp_us, "grasp_attempts": self.grasp_attempts,
             "end_us": self.end_us, "outcome": self.outcome, "success": self.outcome == "placed",
             "reason": self.reason, "size_m": self.size_m, "mass_kg": self.mass_kg,
@@ -198,8 +198,8 @@ class World:
         self.data = mujoco.MjData(self.model)
         self.dt_us = scenario.physics_timestep_us
         self.t_us = 0
-        self.size = scenario.cell.object_size_m
-        self.mass = scenario.cell.object_mass_kg
+        self.size = scenario.work_cell.object_size_m
+        self.mass = scenario.work_cell.object_mass_kg
         self.pool = object_pool_size(scenario)
         self.tasks: list[Task] = []
         m = self.model
@@ -212,7 +212,7 @@ class World:
 
         J, B, G = mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM
         self.cells: list[CellState] = []
-        for i, (x, y) in enumerate(scenario.hall.cell_origins(scenario.loops)):
+        for i, (x, y) in enumerate(scenario.hall.work_cell_origins(scenario.loops)):
             joints = [nid(J, f"c{i}_{name}") for name in JOINTS]
             frees = [nid(J, f"c{i}_obj{k}_free") for k in range(self.pool)]
             self.cells.append(CellState(
@@ -263,7 +263,7 @@ class World:
         if self._on_belt is None or self._steps % self._check_steps == 0:
             self._on_belt = self._parts_on_belts()
         if self._on_belt.size:  # belt speed along x, nothing across
-            self.data.qvel[self._on_belt] = self.sc.cell.belt_speed_m_s
+            self.data.qvel[self._on_belt] = self.sc.work_cell.belt_speed_m_s
             self.data.qvel[self._on_belt + 1] = 0.0
 
     def hold_observations(self) -> None:
@@ -298,7 +298,7 @@ class World:
         (int64), whose velocity becomes the belt speed along x and 0 across, and that speed."""
         on_belt = self._on_belt
         assert on_belt is not None, "belt_drive before before_step"
-        return np.ascontiguousarray(on_belt, dtype=np.int64), float(self.sc.cell.belt_speed_m_s)
+        return np.ascontiguousarray(on_belt, dtype=np.int64), float(self.sc.work_cell.belt_speed_m_s)
 
     def after_steps(self, steps: int) -> None:
         """What ``steps`` steps handed over at once end with: the clock, and the last step's
@@ -453,7 +453,7 @@ class World:
         d.qpos[a:a + 3] = c.origin + np.array([g.SPAWN_X, y_offset_m, g.BELT_TOP_Z + size / 2 + 0.001])
         d.qpos[a + 3:a + 7] = [np.cos(yaw_rad / 2), 0, 0, np.sin(yaw_rad / 2)]
         d.qvel[va:va + 6] = 0.0
-        d.qvel[va] = self.sc.cell.belt_speed_m_s
+        d.qvel[va] = self.sc.work_cell.belt_speed_m_s
         self._collides(c, slot, 1, 1)
         m.body_gravcomp[c.obj_body[slot]] = 0.0
         self._may_sleep(c, slot, False)  # the belt speed just set wakes it at the next step

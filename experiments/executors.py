@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from coordinator.run_state import RunState
 from experiments.points import Point
 from experiments.slots import POINT_PRIORITY, Slots
 from services.main import set_parent_death_signal
@@ -106,10 +107,10 @@ def read_outcome(run_dir: Path, code: int, log_path: Path) -> tuple[str, str | N
     kpis_path = run_dir / "kpis.json"
     if kpis_path.is_file():
         kpis = json.loads(kpis_path.read_text())
-        return kpis.get("status", "failed"), kpis.get("reason"), kpis
+        return kpis.get("status", RunState.FAILED), kpis.get("reason"), kpis
     tail = log_path.read_text(errors="replace").strip().splitlines()[-5:] if log_path.exists() else []
     reason = f"run process exited with code {code} and wrote no KPIs" + (": " + " | ".join(tail) if tail else "")
-    return "failed", reason, {}
+    return RunState.FAILED, reason, {}
 
 
 class LocalExecutor:
@@ -138,7 +139,7 @@ class LocalExecutor:
                 outcome = run_point(task, procs)
             # A point the cancel interrupted is no result (it may even have died before it could
             # say so): it stays unrecorded and runs again on resume.
-            if not cancel.is_set() or outcome.status == "completed":
+            if not cancel.is_set() or outcome.status == RunState.COMPLETED:
                 on_done(task, outcome)
 
         def forward_cancel() -> None:

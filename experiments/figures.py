@@ -29,7 +29,7 @@ MARKERS = "osD^vP*X"
 
 
 def _load_axis(ax: Any, x: str, loads: list[Any]) -> None:
-    ax.set_xlabel(f"{x} (control loops in the cell)" if x == "loops" else x)
+    ax.set_xlabel(f"{x} (control loops in the radio cell)" if x == "loops" else x)
     if all(isinstance(v, int) for v in loads):
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
 
@@ -62,7 +62,7 @@ def success_figure(summary: list[dict[str, Any]], x: str, series_fields: list[st
 
 
 def traffic_figure(summary: list[dict[str, Any]], x: str, series_fields: list[str],
-                   cell_capacity_mbps: float | None) -> Figure:
+                   radio_cell_capacity_mbps: float | None) -> Figure:
     fig, ax = plt.subplots(figsize=(7, 4.2), layout="constrained")
     for i, (name, rows) in enumerate(_by_series(summary, x, series_fields).items()):
         colour = f"C{i}"
@@ -72,9 +72,9 @@ def traffic_figure(summary: list[dict[str, Any]], x: str, series_fields: list[st
             err = [r[f"{key}_ci95"] or 0.0 for r in rows]
             ax.errorbar(xs, ys, yerr=err, ls=style, marker=MARKERS[i % len(MARKERS)], color=colour,
                         capsize=2, label=f"{name}: UL {what}")
-    if cell_capacity_mbps:
-        ax.axhline(cell_capacity_mbps, color="black", lw=1.0, ls="-.",
-                   label=f"cell UL capacity (measured) {cell_capacity_mbps:.1f} Mbit/s")
+    if radio_cell_capacity_mbps:
+        ax.axhline(radio_cell_capacity_mbps, color="black", lw=1.0, ls="-.",
+                   label=f"radio cell UL capacity (measured) {radio_cell_capacity_mbps:.1f} Mbit/s")
     _load_axis(ax, x, [r[x] for r in summary])
     ax.set_ylabel("Mbit/s")
     ax.set_title("Uplink traffic injected and delivered")

@@ -15,16 +15,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-
-class JobState(StrEnum):
-    """Where a run or a sweep is; the last four are ends."""
-
-    PENDING = "pending"
-    RUNNING = "running"
-    COMPLETED = "completed"
-    FAILED = "failed"
-    TIMED_OUT = "timed_out"
-    CANCELLED = "cancelled"
+from coordinator.run_state import ACTIVE, RunState
 
 
 class JobKind(StrEnum):
@@ -32,7 +23,6 @@ class JobKind(StrEnum):
     SWEEP = "sweep"
 
 
-ACTIVE = (JobState.PENDING, JobState.RUNNING)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -88,19 +78,19 @@ class JobStore:
         with self._lock:
             self._db.execute(
                 "INSERT INTO jobs (job_id, kind, name, request_json, state, created_s, dir) VALUES (?,?,?,?,?,?,?)",
-                (job_id, kind.value, name, json.dumps(request), JobState.PENDING.value, time.time(), str(job_dir)))
+                (job_id, kind.value, name, json.dumps(request), RunState.PENDING.value, time.time(), str(job_dir)))
 
     def set_running(self, job_id: str) -> None:
         with self._lock:
             self._db.execute("UPDATE jobs SET state=?, started_s=COALESCE(started_s, ?) WHERE job_id=?",
-                             (JobState.RUNNING.value, time.time(), job_id))
+                             (RunState.RUNNING.value, time.time(), job_id))
 
     def set_progress(self, job_id: str, sim_time_s: float, rtf: float) -> None:
         with self._lock:
             self._db.execute("UPDATE jobs SET sim_time_s=?, real_time_factor=? WHERE job_id=?",
                              (sim_time_s, rtf, job_id))
 
-    def finish(self, job_id: str, state: JobState | str, reason: str | None,
+    def finish(self, job_id: str, state: RunState | str, reason: str | None,
                kpis: dict[str, Any] | None = None) -> None:
         """The job's end; a run's KPIs also give its simulated time and real-time factor."""
         kpis = kpis or {}
@@ -119,7 +109,7 @@ class JobStore:
             rows = self._db.execute("SELECT job_id, dir FROM jobs WHERE kind='run' AND state IN (?,?)",
                                     ACTIVE).fetchall()
             self._db.execute("UPDATE jobs SET state=?, reason=?, finished_s=? WHERE kind='run' AND state IN (?,?)",
-                             (JobState.FAILED.value, reason, time.time(), *ACTIVE))
+                             (RunState.FAILED.value, reason, time.time(), *ACTIVE))
         return [(str(r[0]), str(r[1])) for r in rows]
 
     def get(self, job_id: str, kind: JobKind | None = None) -> dict[str, Any] | None:

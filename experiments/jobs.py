@@ -19,8 +19,9 @@ from typing import Any
 
 from coordinator.conductor import Progress
 from coordinator.run import RunResult, execute_run, new_run_id, salvage_run
+from coordinator.run_state import ACTIVE, ENDED, RunState
 from experiments.executors import Executor, LocalExecutor
-from experiments.job_store import ACTIVE, JobKind, JobState, JobStore
+from experiments.job_store import JobKind, JobStore
 from experiments.points import expand
 from experiments.records import SweepDir
 from experiments.report import load_sweep_spec
@@ -33,7 +34,6 @@ log = logging.getLogger(__name__)
 
 # Why a run a previous coordinator left unfinished failed.
 ORPHAN_REASON = "coordinator stopped during the run"
-ENDED = ("completed", "failed", "timed_out", "cancelled")
 
 
 class TooMuchWork(Exception):
@@ -133,7 +133,7 @@ class JobService:
         try:
             with self.slots.take(RUN_PRIORITY, cancel) as got:
                 if not got:
-                    self._end(run_id, JobKind.RUN, JobState.CANCELLED, "cancelled before it started")
+                    self._end(run_id, JobKind.RUN, RunState.CANCELLED, "cancelled before it started")
                     return
                 self.store.set_running(run_id)
 
@@ -145,7 +145,7 @@ class JobService:
                 result = self.execute(sc, self.runs_root, on_progress=progress, cancel=cancel, run_id=run_id)
             self._end(run_id, JobKind.RUN, result.status, result.reason, result.kpis)
         except Exception as exc:  # a broken run must not take the coordinator with it
-            self._end(run_id, JobKind.RUN, JobState.FAILED, f"coordinator error: {exc}")
+            self._end(run_id, JobKind.RUN, RunState.FAILED, f"coordinator error: {exc}")
 
     def _sweep_job(self, sid: str, cancel: threading.Event) -> None:
         row = self.store.get(sid, JobKind.SWEEP)
@@ -157,10 +157,10 @@ class JobService:
             self._sweeps[sid] = sweep
             self.store.set_running(sid)
             sweep.run(self.make_executor(self.slots), cancel, self._sweep_event)
-            state = sweep.dir.meta().get("state", JobState.COMPLETED)
-            self._end(sid, JobKind.SWEEP, state, "cancelled by the user" if state == JobState.CANCELLED else None)
+            state = sweep.dir.meta().get("state", RunState.COMPLETED)
+            self._end(sid, JobKind.SWEEP, state, "cancelled by the user" if state == RunState.CANCELLED else None)
         except Exception as exc:  # a broken sweep must not take the coordinator with it
-            self._end(sid, JobKind.SWEEP, JobState.FAILED, f"coordinator error: {type(exc).__name__}: {exc}")
+            self._end(sid, JobKind.SWEEP, RunState.FAILED, f"coordinator error: {type(exc).__name__}: {exc}")
         finally:
             self._sweeps.pop(sid, None)
 
@@ -205,7 +205,7 @@ class JobService:
             "created_s": row["created_s"], "started_s": row["started_s"], "finished_s": row["finished_s"],
             "spec": row["request"],
             "progress": {"points_total": max(len(points), snap["total"] if snap else 0), "points_done": done,
-                         "points_failed": sum(1 for p in points if p["state"] not in ("completed", "pending", "running")),
+                         "points_failed": sum(1 for p in points if p["state"] in ENDED and p["state"] != RunState.COMPLETED),
                          "eta_s": snap["eta_s"] if snap else None},
             "points": points,
             "capacity": json.loads(cap_path.read_text()) if row["state"] not in ACTIVE and cap_path.is_file() else None,
@@ -230,7 +230,7 @@ def _point_state(p: dict[str, Any], rec: dict[str, Any] | None, in_flight: dict[
                                                "ul_throughput_mbps", "ul_ip_latency_ms.p50",
                                                "ul_ip_latency_ms.p99", "real_time_factor")})
     elif label in in_flight:
-        out.update(state="running", sim_time_s=in_flight[label]["sim_time_s"])
+        out.update(state=RunState.RUNNING, sim_time_s=in_flight[label]["sim_time_s"])
     else:
-        out.update(state="pending")
+        out.update(state=RunState.PENDING)
     return out

@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from coordinator.run_state import RunState
 from experiments.executors import PointOutcome, PointTask, run_process
 
 
@@ -106,7 +107,7 @@ class RayExecutor:
         try:
             res = ray.get(ref)
         except Exception as exc:  # the worker or its node died: the point failed, the sweep goes on
-            return PointOutcome(task.point.key, task.run_id, "failed", f"ray task failed: {exc}"[:2000],
+            return PointOutcome(task.point.key, task.run_id, RunState.FAILED, f"ray task failed: {exc}"[:2000],
                                 run_dir, time.monotonic() - t0)
         task.runs_dir.mkdir(parents=True, exist_ok=True)
         with tarfile.open(fileobj=io.BytesIO(res["archive"]), mode="r:gz") as tar:

@@ -26,6 +26,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from coordinator.run_state import RunState
 from fabric.tables import write_json, write_table
 
 # Bulky or per-loop KPI entries that stay in the run's kpis.json (per-loop ones are in loops.parquet).
@@ -93,7 +94,7 @@ class SweepDir:
         return list(latest.values())
 
     def completed_keys(self) -> set[str]:
-        return {r["key"] for r in self.records() if r["status"] == "completed"}
+        return {r["key"] for r in self.records() if r["status"] == RunState.COMPLETED}
 
     def write_points_table(self) -> list[dict[str, Any]]:
         """``points.parquet`` from the log: one row per point."""
@@ -106,7 +107,7 @@ class SweepDir:
         rows: list[dict[str, Any]] = []
         for rec in self.records():
             path = self.path / rec["run_dir"] / "loops.parquet"
-            if rec["status"] != "completed" or not path.is_file():
+            if rec["status"] != RunState.COMPLETED or not path.is_file():
                 continue
             head = {"key": rec["key"], **rec["values"], "seed": rec["seed"]}
             rows += [{**head, **r} for r in pq.read_table(path).to_pylist()]

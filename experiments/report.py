@@ -13,7 +13,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import yaml
 
-from experiments.cell_capacity import measure_ul_capacity
+from coordinator.run_state import RunState
 from experiments.figures import (
     gain_figure,
     latency_figure,
@@ -22,6 +22,7 @@ from experiments.figures import (
     success_figure,
     traffic_figure,
 )
+from experiments.radio_capacity import measure_ul_capacity
 from experiments.records import SweepDir, write_rows
 from experiments.spec import SweepSpec
 from experiments.summary import (
@@ -44,8 +45,8 @@ def load_sweep_spec(sweep_dir: Path) -> SweepSpec:
     return SweepSpec.model_validate(yaml.safe_load(path.read_text()))
 
 
-def _cell_capacity(sd: SweepDir, records: list[dict[str, Any]]) -> dict[str, Any] | None:
-    cached = sd.path / "cell_capacity.json"
+def _radio_cell_capacity(sd: SweepDir, records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    cached = sd.path / "radio_cell_capacity.json"
     if cached.is_file():
         return dict(json.loads(cached.read_text()))
     for rec in records:
@@ -90,8 +91,8 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
     if spec.capacity.group:
         cap["grouped"] = grouped_capacity(summary, x, series_fields, spec.capacity.thresholds,
                                           spec.capacity.reference, spec.capacity.group)
-    cell = _cell_capacity(sd, records)
-    cap["cell_ul_capacity_mbps"] = cell["ul_capacity_mbps"] if cell else None
+    cell = _radio_cell_capacity(sd, records)
+    cap["radio_cell_ul_capacity_mbps"] = cell["ul_capacity_mbps"] if cell else None
     write_json(sweep_dir / "capacity.json", cap)
 
     figures: dict[str, list[str]] = {}
@@ -99,11 +100,11 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
         figures["fig4_success"] = save(success_figure(summary, x, series_fields, spec.capacity.thresholds),
                                        sweep_dir / "fig4_success")
         figures["fig5_traffic"] = save(traffic_figure(summary, x, series_fields,
-                                                      cap["cell_ul_capacity_mbps"]), sweep_dir / "fig5_traffic")
+                                                      cap["radio_cell_ul_capacity_mbps"]), sweep_dir / "fig5_traffic")
         loads = _latency_loads(spec, [r[x] for r in summary])
         lat: dict[str, dict[Any, np.ndarray]] = {}
         for rec in records:
-            if rec["status"] != "completed" or rec["values"].get(x) not in loads:
+            if rec["status"] != RunState.COMPLETED or rec["values"].get(x) not in loads:
                 continue
             name = series_name(rec["values"], series_fields)
             per_load = lat.setdefault(name, {})
@@ -174,7 +175,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
               + f"; seeds {spec.seed_list()}"
               + (f", more seeds (up to {spec.repeat_until.max_seeds}) until a grid point has "
                  f"{spec.repeat_until.min_tasks} tasks" if spec.repeat_until else "") + ".", ""]
-    done = sum(1 for p in points if p["status"] == "completed")
+    done = sum(1 for p in points if p["status"] == RunState.COMPLETED)
     lines += [f"Runs: {len(points)} ({done} completed). State: {meta.get('state', '-')}. "
               f"Wall time: {_f(meta.get('wall_s'))} s.", ""]
     if spec.variants:
@@ -200,7 +201,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
     if "grouped" in cap:
         lines += grouped_lines(cap["grouped"], labels, x)
     if cell:
-        lines += ["", f"Cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
+        lines += ["", f"Radio cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
     lines += ["", "## Figures", ""]
     titles = {"fig7_gain": "Fig. 7: capacity gain over the reference, per group",
               "fig8_map": "Fig. 8: task success rate map",
@@ -221,7 +222,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
                      + f" | {r['runs_completed']}/{r['runs']} | {r['tasks']} | {ci} | {_f(r['ul_injected_mbps'])} | "
                      f"{_f(r['ul_throughput_mbps'])} | {_f(r['ul_ip_latency_ms.p50'])} / "
                      f"{_f(r['ul_ip_latency_ms.p99'])} | {_f(r['real_time_factor'])}x |")
-    failed = [p for p in points if p["status"] != "completed"]
+    failed = [p for p in points if p["status"] != RunState.COMPLETED]
     if failed:
         lines += ["", "## Runs that did not complete", ""]
         lines += [f"- {' '.join(f'{f}={p.get(f)}' for f in grid_fields)} seed={p['seed']}: {p['status']}: "

@@ -34,7 +34,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from scenario.schema import Scenario, ScenarioError, load_scenario, shipped_names
+from scenario.schema import Scenario, ScenarioError, current_path, load_scenario, shipped_names
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
 VARIANT = "variant"  # the grid field that sweeps the spec's named variants
@@ -298,6 +298,24 @@ def _format(exc: ValidationError) -> list[tuple[str, str]]:
     return out
 
 
+def _current_paths(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with every scenario field path under its current name (``scenario.schema.RENAMED``:
+    old names load with a warning)."""
+    data = dict(data)
+    for section in ("set", "grid"):
+        if isinstance(data.get(section), dict):
+            data[section] = {current_path(k) if isinstance(k, str) else k: v for k, v in data[section].items()}
+    if isinstance(data.get("variants"), dict):
+        data["variants"] = {name: ({current_path(k) if isinstance(k, str) else k: v for k, v in fields.items()}
+                                   if isinstance(fields, dict) else fields)
+                            for name, fields in data["variants"].items()}
+    for section, key in (("capacity", "x"), ("capacity", "group"), ("figures", "map_y")):
+        part = data.get(section)
+        if isinstance(part, dict) and isinstance(part.get(key), str):
+            data[section] = {**part, key: current_path(part[key])}
+    return data
+
+
 def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True,
                max_points: tuple[int, str] | None = None) -> SweepSpec:
     """Validate a spec mapping, its grid paths, and every point's scenario; or raise SweepError.
@@ -306,7 +324,7 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
     if not isinstance(data, dict):
         raise SweepError([("(sweep)", f"expected a mapping of fields, got {type(data).__name__}")])
     try:
-        spec = SweepSpec.model_validate(data)
+        spec = SweepSpec.model_validate(_current_paths(data))
     except ValidationError as exc:
         raise SweepError(_format(exc)) from None
     if max_points is not None and spec.points() > max_points[0]:

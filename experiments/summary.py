@@ -17,6 +17,8 @@ import math
 from collections import defaultdict
 from typing import Any
 
+from coordinator.run_state import RunState
+
 # Continuous KPIs summarised per grid point (keys of points' flattened KPIs).
 METRICS = (
     "ul_injected_mbps", "ul_throughput_mbps", "dl_throughput_mbps", "camera_bitrate_mbps_mean",
@@ -71,7 +73,7 @@ def summarise(points: list[dict[str, Any]], grid: dict[str, list[Any]]) -> list[
         groups[json.dumps([p.get(f) for f in grid_fields])].append(p)
     rows = []
     for members in groups.values():
-        done = [p for p in members if p["status"] == "completed"]
+        done = [p for p in members if p["status"] == RunState.COMPLETED]
         tasks = sum(int(p.get("kpi.tasks") or 0) for p in done)
         placed = sum(int(p.get("kpi.tasks_placed") or 0) for p in done)
         low, high = wilson(placed, tasks)

@@ -20,6 +20,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from coordinator.run_state import RunState
 from experiments.executors import Executor, PointOutcome, PointTask
 from experiments.points import Point, expand, make_point, write_point_config
 from experiments.records import SweepDir, flatten_kpis
@@ -95,7 +96,7 @@ class Sweep:
                scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True) -> Sweep:
         sweep_id = sweep_id or new_sweep_id(spec)
         sweep = cls(spec, root / sweep_id, scenarios_dir, allow_paths)
-        sweep.dir.create({"sweep_id": sweep_id, "name": spec.name, "state": "pending",
+        sweep.dir.create({"sweep_id": sweep_id, "name": spec.name, "state": RunState.PENDING,
                           "created": datetime.now(UTC).isoformat(timespec="seconds")}, dump_spec(spec))
         return sweep
 
@@ -136,7 +137,7 @@ class Sweep:
             g = json.dumps(r["values"], sort_keys=True)
             if g in seeds:
                 seeds[g].add(r["seed"])
-                if r["status"] == "completed":
+                if r["status"] == RunState.COMPLETED:
                     tasks[g].append(int(r["kpis"].get("tasks") or 0))
         base = base_path(self.spec.base, self.scenarios_dir, self.allow_paths)
         extra: list[Point] = []
@@ -172,7 +173,7 @@ class Sweep:
             return set()
         placed: dict[str, dict[Any, list[int]]] = {}
         for r in self.dir.records():
-            if r["status"] != "completed" or rule.x not in r["values"]:
+            if r["status"] != RunState.COMPLETED or rule.x not in r["values"]:
                 continue
             pt = placed.setdefault(self._series_of(r["values"]), {}).setdefault(r["values"][rule.x], [0, 0])
             pt[0] += int(r["kpis"].get("tasks_placed") or 0)
@@ -212,7 +213,7 @@ class Sweep:
         """Run the sweep to its end (or until cancelled); returns the capacity record."""
         cancel = cancel or threading.Event()
         emit = on_event or (lambda kind, data: None)
-        meta = {**self.dir.meta(), "state": "running", "executor": executor.name,
+        meta = {**self.dir.meta(), "state": RunState.RUNNING, "executor": executor.name,
                 "started": datetime.now(UTC).isoformat(timespec="seconds")}
         self.dir.write_meta(meta)
         wall0 = time.monotonic()
@@ -235,7 +236,7 @@ class Sweep:
             with prog.lock:
                 prog.in_flight.pop(task.run_id, None)
                 prog.done += 1
-                prog.failed += outcome.status != "completed"
+                prog.failed += outcome.status != RunState.COMPLETED
                 prog.point_wall.append(outcome.wall_s)
             if task.progress_file is not None:
                 task.progress_file.unlink(missing_ok=True)
@@ -246,7 +247,7 @@ class Sweep:
         session = getattr(executor, "session", contextlib.nullcontext)
         with session():
             self._run_points(todo, points, executor, on_start, on_done, cancel)
-        state = "cancelled" if cancel.is_set() else "completed"
+        state = RunState.CANCELLED if cancel.is_set() else RunState.COMPLETED
         meta.update(state=state, finished=datetime.now(UTC).isoformat(timespec="seconds"),
                     wall_s=round(time.monotonic() - wall0, 1), points=len(points),
                     passed_over=prog.passed_over)

@@ -1,4 +1,4 @@
-"""Compute emulation (DESIGN 5): a node runs its jobs for real, one at a time per emulated core,
+"""Compute emulation (docs/architecture.md sec. 5): a node runs its jobs for real, one at a time per emulated core,
 and each job's emulated duration comes from the node's timing mode.
 
 - ``cpu`` (default): the job's own CPU time, in reference-core time, over the node's ``cpus``

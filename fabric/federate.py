@@ -1,4 +1,4 @@
-"""The federate base: the conservative window protocol of DESIGN 3, shared by every federate.
+"""The federate base: the conservative window protocol of docs/architecture.md sec. 3, shared by every federate.
 
 A federate receives ``advance(t_end, expected_in)``, waits until it holds every data message sent
 to it so far (count-based barrier), then processes every input and internal event with time

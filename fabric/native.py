@@ -39,12 +39,12 @@ log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
 # Modules compiled together, as paths under ROOT. Every package holding one calls use_native in
 # its __init__. A compiled class cannot be subclassed by interpreted code, so a module that
-# subclasses one of these (netsim.simple subclasses netsim.cell.Cell) is compiled with it.
+# subclasses one of these (netsim.simple subclasses netsim.radio_cell.RadioCell) is compiled with it.
 MODULES = (
-    "netsim/cell.py",
+    "netsim/radio_cell.py",
     "netsim/simple.py",
     "netsim/nr/buffers.py",
-    "netsim/nr/cell.py",
+    "netsim/nr/radio_cell.py",
     "netsim/nr/channel.py",
     "netsim/nr/harq.py",
     "netsim/nr/link_adaptation.py",

@@ -37,7 +37,7 @@ _S = pa.string()
 _B = pa.bool_()
 
 TASKS = pa.schema([
-    ("cell", _I), ("task_id", _I), ("spawn_us", _I), ("grasp_us", _I), ("grasp_attempts", _I),
+    ("work_cell", _I), ("task_id", _I), ("spawn_us", _I), ("grasp_us", _I), ("grasp_attempts", _I),
     ("end_us", _I), ("outcome", _S), ("success", _B), ("reason", _S), ("size_m", _F),
     ("mass_kg", _F), ("yaw_rad", _F),
 ])

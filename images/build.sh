@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Build the cosim5g images without any container registry (DESIGN.md section 8).
+# Build the cosim5g images without any container registry (docs/architecture.md sec. 8).
 #
 #   1. base image cosim5g/base:bookworm: local cache, else `docker pull debian:bookworm-slim`,
 #      else debootstrap (minbase) + `docker import`, the rootfs tarball cached for the next build;

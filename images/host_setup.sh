@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# What cosim5g needs from the host, checked one by one (DESIGN.md section 8, docs/docker.md).
+# What cosim5g needs from the host, checked one by one (docs/architecture.md sec. 8, docs/docker.md).
 #
 #   bash images/host_setup.sh [--check] [python] [docker] [egl] [debootstrap]
 #

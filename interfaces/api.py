@@ -22,8 +22,9 @@ from fastapi.security import HTTPBearer
 from prometheus_client import Counter, Gauge
 
 from coordinator.run import RunResult, execute_run
+from coordinator.run_state import ACTIVE, RunState
 from experiments.executors import Executor
-from experiments.job_store import ACTIVE, JobKind
+from experiments.job_store import JobKind
 from experiments.jobs import JobService, TooMuchWork
 from experiments.slots import Slots
 from experiments.spec import SweepError, SweepSpec, base_path, overrides
@@ -214,7 +215,7 @@ def count_jobs(jobs: JobService) -> None:
 
     jobs.on_progress, jobs.on_ended = progress, ended
     jobs.on_point_done = lambda state: SWEEP_POINTS.labels(state).inc()
-    for state in ("completed", "failed", "timed_out"):
+    for state in (RunState.COMPLETED, RunState.FAILED, RunState.TIMED_OUT):
         SWEEP_POINTS.labels(state)
     for reason in ("token", "body_size", "max_queued"):
         REFUSED.labels(reason)

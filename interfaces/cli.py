@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.conductor import Progress
+from coordinator.run_state import RunState
 from fabric.tables import write_json
 from scenario.schema import Scenario, ScenarioError, load_scenario
 
@@ -121,14 +122,14 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     result = execute_run(sc, Path(args.results), on_progress=progress, cancel=cancel, run_id=args.run_id)
     k = result.kpis
-    if k.get("status") != "completed":
+    if k.get("status") != RunState.COMPLETED:
         print(f"run {result.run_id} {k.get('status')}: {k.get('reason')}", file=sys.stderr)
         for line in k.get("log_tail") or []:
             print(f"  | {line}", file=sys.stderr)
     print(kpi_table(k))
     if args.json:
         print(json.dumps(k, sort_keys=True, default=str))
-    return 0 if result.status == "completed" else 1
+    return 0 if result.status == RunState.COMPLETED else 1
 
 
 def _sweep_progress(sweep: Any, jobs: int, stream: Any, stop: threading.Event) -> None:
@@ -174,7 +175,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(f"sweep {sweep.sweep_id}: {sweep.dir.path}", file=sys.stderr)
 
     def on_event(kind: str, data: dict[str, Any]) -> None:
-        if kind == "point_done" and data["status"] != "completed":
+        if kind == "point_done" and data["status"] != RunState.COMPLETED:
             print(f"\n  point {data['values']} seed {data['seed']}: {data['status']}: {data['reason']}",
                   file=sys.stderr)
 
@@ -193,7 +194,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(capacity_table(cap))
     print(f"report: {sweep.dir.path / 'report.md'}")
     meta = sweep.dir.meta()
-    return 0 if meta.get("state") == "completed" else 1
+    return 0 if meta.get("state") == RunState.COMPLETED else 1
 
 
 def capacity_table(cap: dict[str, Any]) -> str:
@@ -310,12 +311,12 @@ def cmd_submit(args: argparse.Namespace) -> int:
         print(str(exc), file=sys.stderr)
         return 2
     k = run.get("kpis") or {}
-    if run["status"] != "completed":
+    if run["status"] != RunState.COMPLETED:
         print(f"run {run_id} {run['status']}: {run.get('reason')}", file=sys.stderr)
         for line in k.get("log_tail") or []:
             print(f"  | {line}", file=sys.stderr)
     print(kpi_table({**k, "status": run["status"], "reason": run.get("reason")}))
-    return 0 if run["status"] == "completed" else 1
+    return 0 if run["status"] == RunState.COMPLETED else 1
 
 
 def _submit_sweep(args: argparse.Namespace) -> int:
@@ -332,12 +333,12 @@ def _submit_sweep(args: argparse.Namespace) -> int:
     except ApiError as exc:
         print(str(exc), file=sys.stderr)
         return 2
-    if s["state"] != "completed":
+    if s["state"] != RunState.COMPLETED:
         print(f"sweep {sweep_id} {s['state']}: {s.get('reason')}", file=sys.stderr)
     if s.get("capacity"):
         print(capacity_table(s["capacity"]))
     print(f"report: {args.api}/sweeps/{sweep_id}")
-    return 0 if s["state"] == "completed" else 1
+    return 0 if s["state"] == RunState.COMPLETED else 1
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,6 +15,7 @@ import urllib.request
 from collections.abc import Callable
 from typing import Any
 
+from coordinator.run_state import ACTIVE, RunState
 from fabric.settings import settings
 from interfaces.auth import DEFAULT_TOKEN_FILE, TOKEN_ENV, TOKEN_FILE_ENV, client_token
 
@@ -98,7 +99,7 @@ def _follow(base: str, path: str, state_key: str, line: Callable[[dict[str, Any]
     """Poll ``path`` until its ``state_key`` leaves pending/running, showing ``line`` of it."""
     while True:
         rec = call(base, "GET", path, token=token)
-        if rec[state_key] not in ("pending", "running"):
+        if rec[state_key] not in ACTIVE:
             stream.write("\n")
             return dict(rec)
         stream.write("\r" + line(rec))
@@ -124,7 +125,7 @@ def follow_sweep(base: str, sweep_id: str, stream: Any = sys.stderr, poll_s: flo
     def line(s: dict[str, Any]) -> str:
         prog = s["progress"]
         running = ", ".join(" ".join(f"{k}={v}" for k, v in p["values"].items()) + f" sim {p.get('sim_time_s') or 0:.1f} s"
-                            for p in s["points"] if p["state"] == "running")
+                            for p in s["points"] if p["state"] == RunState.RUNNING)
         eta = f"ETA {prog['eta_s'] / 60:.1f} min" if prog.get("eta_s") is not None else ""
         return (f"{sweep_id}: {s['state']:<8} {prog['points_done']}/{prog['points_total']} points "
                 f"{running} {eta}\x1b[K")

@@ -10,6 +10,7 @@ from __future__ import annotations
 from html import escape
 from typing import Any
 
+from coordinator.run_state import ACTIVE, RunState
 from experiments.summary import capacity_text, gain_text
 
 STYLE = """
@@ -26,6 +27,9 @@ img { max-width: 100%; border: 1px solid #ddd; margin: 0.5em 0; }
 FIGURES = (("fig4_success", "Fig. 4: task success rate vs loops"),
            ("fig5_traffic", "Fig. 5: uplink traffic injected and delivered vs loops"),
            ("fig6_latency_cdf", "Fig. 6: uplink IP packet latency CDF"))
+# Drawn only when the spec asks: (stem, title, the spec's section and field that asks).
+OPTIONAL_FIGURES = (("fig7_gain", "Fig. 7: capacity gain over the reference, per group", "capacity", "group"),
+                    ("fig8_map", "Fig. 8: task success rate map", "figures", "map_y"))
 
 
 def _page(title: str, body: str, refresh_s: int | None = None) -> str:
@@ -61,7 +65,7 @@ def index_page(sweeps: list[dict[str, Any]], runs: list[dict[str, Any]]) -> str:
         f'<tr><td class="l">{escape(r["run_id"])}</td><td class="l">{escape(r["scenario"])}</td>'
         f'<td class="l">{_state(r["status"])}</td><td>{_fmt(r.get("sim_time_s"))}</td>'
         f'<td>{_fmt(r.get("real_time_factor"))}</td></tr>' for r in runs)
-    running = any(s["state"] in ("pending", "running") for s in sweeps)
+    running = any(s["state"] in ACTIVE for s in sweeps)
     body = ("<h1>cosim5g</h1><h2>Sweeps</h2>"
             + (f'<table><tr><th class="l">sweep</th><th class="l">name</th><th class="l">state</th>'
                f'<th class="l">points</th></tr>{rows}</table>' if sweeps else "<p>No sweep yet.</p>")
@@ -86,8 +90,8 @@ def capacity_table(cap: dict[str, Any]) -> str:
         gain = escape(" / ".join(gain_text(g, entry[lab]) for lab, g in gains.items()))
         rows += f'<tr><td class="l">{escape(name)}</td>{cells}<td>{gain}</td></tr>'
     ref = escape(str(cap.get("reference")))
-    cell = cap.get("cell_ul_capacity_mbps")
-    note = f"<p>Cell uplink capacity (measured): {cell:.1f} Mbit/s.</p>" if cell else ""
+    cell = cap.get("radio_cell_ul_capacity_mbps")
+    note = f"<p>Radio cell uplink capacity (measured): {cell:.1f} Mbit/s.</p>" if cell else ""
     return (f'<table id="capacity"><tr><th class="l">series</th>{head}<th>gain over {ref}</th></tr>{rows}</table>'
             f"<p>Capacity: the largest {escape(str(cap.get('x')))} with every smaller one of the grid at or "
             f"above the task success threshold (success pooled over seeds).</p>{note}")
@@ -96,7 +100,7 @@ def capacity_table(cap: dict[str, Any]) -> str:
 def sweep_page(s: dict[str, Any]) -> str:
     sid = escape(s["sweep_id"])
     prog = s["progress"]
-    active = s["state"] in ("pending", "running")
+    active = s["state"] in ACTIVE
     eta = f", ETA {prog['eta_s'] / 60:.1f} min" if prog.get("eta_s") is not None else ""
     failed = f", {prog['points_failed']} failed" if prog["points_failed"] else ""
     body = (f'<p><a href="/">all sweeps</a></p><h1>Sweep {sid}</h1>'
@@ -105,7 +109,10 @@ def sweep_page(s: dict[str, Any]) -> str:
             f"{failed}{escape(eta)}</p>")
     if s.get("capacity"):
         body += "<h2>Capacity</h2>" + capacity_table(s["capacity"])
-        for stem, title in FIGURES:
+        spec = s["spec"]
+        drawn = [(stem, title) for stem, title, section, field in OPTIONAL_FIGURES
+                 if (spec.get(section) or {}).get(field)]
+        for stem, title in (*FIGURES, *drawn):
             body += (f"<h2>{escape(title)}</h2><a href='/sweeps/{sid}/files/{stem}.svg'>"
                      f"<img alt='{escape(title)}' src='/sweeps/{sid}/files/{stem}.png'></a>")
         body += f"<p><a href='/sweeps/{sid}/report'>report.md</a></p>"
@@ -114,7 +121,7 @@ def sweep_page(s: dict[str, Any]) -> str:
     rows = ""
     for p in s["points"]:
         k = p.get("kpis") or {}
-        progress = f"sim {_fmt(p.get('sim_time_s'))} s" if p["state"] == "running" else escape(p.get("reason") or "")
+        progress = f"sim {_fmt(p.get('sim_time_s'))} s" if p["state"] == RunState.RUNNING else escape(p.get("reason") or "")
         rows += ("<tr>" + "".join(f"<td>{_fmt(p['values'].get(f))}</td>" for f in fields)
                  + f"<td>{p['seed']}</td><td class='l'>{_state(p['state'])}</td><td>{_fmt(k.get('tasks'))}</td>"
                  f"<td>{_fmt(k.get('task_success_rate'))}</td><td>{_fmt(k.get('ul_injected_mbps'))}</td>"

@@ -16,16 +16,16 @@ from typing import Any
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate
 from fabric.messages import Message
-from netsim.cell import (
+from netsim.nr.radio_cell import NrCell
+from netsim.radio_cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
     LOSS_DELAY_BUDGET,
-    Cell,
     FlowQos,
     Packet,
     PacketOutcome,
+    RadioCell,
 )
-from netsim.nr.cell import NrCell
 from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
 
@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 MAX_URGENCY = 8.0
 
 
-def make_cell(federate: Federate) -> Cell:
+def make_cell(federate: Federate) -> RadioCell:
     """The cell model the scenario names, with the UEs of every loop at their hall positions."""
     sc = federate.scenario
     cfg = sc.netsim

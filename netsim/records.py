@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from netsim.cell import PacketOutcome
+from netsim.radio_cell import PacketOutcome
 
 
 class OutcomeColumns:

@@ -15,18 +15,18 @@ from typing import Any
 
 import numpy as np
 
-from netsim.cell import (
+from netsim.radio_cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
     LOSS_DELAY_BUDGET,
-    Cell,
     FlowQos,
     Packet,
     PacketOutcome,
+    RadioCell,
 )
 
 
-class SimpleCell(Cell):
+class SimpleCell(RadioCell):
     def __init__(self, slot_us: int, ul_rate_mbps: float, dl_rate_mbps: float, loss_probability: float,
                  buffer_bytes: int, rng: np.random.Generator) -> None:
         self.slot_us = slot_us

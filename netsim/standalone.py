@@ -27,8 +27,8 @@ from pydantic import ValidationError
 
 from fabric.heap import simulation_heap
 from fabric.seeding import rng as named_rng
-from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
-from netsim.nr.cell import NrCell
+from netsim.nr.radio_cell import NrCell
+from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
 from scenario.nr import NrConfig
 
 GNB_HEIGHT_M = 1.5

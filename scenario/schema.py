@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import math
 import reprlib
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -32,7 +33,7 @@ class JobModel(Strict):
 
 
 class NodeProfile(Strict):
-    """A compute node's capacity and how its job durations are obtained (DESIGN 5, docs/compute.md).
+    """A compute node's capacity and how its job durations are obtained (docs/architecture.md sec. 5, docs/compute.md).
 
     ``cpus`` count reference cores, not this host's: each host scores its own speed against the
     reference core (fabric/host_speed.py) and job CPU times are scaled by it, so one
@@ -65,7 +66,8 @@ class Nodes(Strict):
 
 
 class HallConfig(Strict):
-    """The factory hall and where cells and the gNB stand in it (gives netsim its UE positions)."""
+    """The factory hall and where the work cells and the gNB stand in it (gives netsim its UE
+    positions)."""
 
     length_m: float = Field(default=120.0, gt=0, description="hall length (x), metres")
     width_m: float = Field(default=60.0, gt=0, description="hall width (y), metres")
@@ -73,25 +75,25 @@ class HallConfig(Strict):
     gnb_position_m: tuple[float, float, float] = Field(
         default=(60.0, 30.0, 1.5), description="gNB (and Edge) position, metres"
     )
-    cell_pitch_m: tuple[float, float] = Field(
-        default=(8.0, 8.0), description="distance between neighbouring cells along x and y, metres"
+    work_cell_pitch_m: tuple[float, float] = Field(
+        default=(8.0, 8.0), description="distance between neighbouring work cells along x and y, metres"
     )
-    cells_per_row: int = Field(default=8, ge=1, description="cells per row along x")
+    work_cells_per_row: int = Field(default=8, ge=1, description="work cells per row along x")
     ue_height_m: float = Field(default=1.5, gt=0, description="camera and robot modem height")
 
-    def cell_origins(self, n: int) -> list[tuple[float, float]]:
-        """Cell centres, a grid centred on the gNB: row-major, ``cells_per_row`` per row."""
-        rows = math.ceil(n / self.cells_per_row)
-        px, py = self.cell_pitch_m
-        per_row = min(n, self.cells_per_row)
+    def work_cell_origins(self, n: int) -> list[tuple[float, float]]:
+        """Work cell centres, a grid centred on the gNB: row-major, ``work_cells_per_row`` per row."""
+        rows = math.ceil(n / self.work_cells_per_row)
+        px, py = self.work_cell_pitch_m
+        per_row = min(n, self.work_cells_per_row)
         x0 = self.gnb_position_m[0] - (per_row - 1) * px / 2
         y0 = self.gnb_position_m[1] - (rows - 1) * py / 2
-        return [(x0 + (i % self.cells_per_row) * px, y0 + (i // self.cells_per_row) * py)
+        return [(x0 + (i % self.work_cells_per_row) * px, y0 + (i // self.work_cells_per_row) * py)
                 for i in range(n)]
 
 
-class CellConfig(Strict):
-    """One conveyor cell: belt, objects, pick zone."""
+class WorkCellConfig(Strict):
+    """One work cell: a conveyor belt bringing parts, its arm's pick zone (one control loop)."""
 
     belt_speed_m_s: float = Field(default=0.2, gt=0, le=1.0, description="belt speed, m/s")
     object_period_s: float = Field(default=4.0, gt=0.5, description="time between objects, s")
@@ -113,7 +115,7 @@ class CellConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _jitter_fits(self) -> CellConfig:
+    def _jitter_fits(self) -> WorkCellConfig:
         if self.object_jitter_s >= self.object_period_s / 2:
             raise ValueError(
                 f"object_jitter_s ({self.object_jitter_s}) must be below half object_period_s "
@@ -122,7 +124,7 @@ class CellConfig(Strict):
         return self
 
     @model_validator(mode="after")
-    def _spreads_fit(self) -> CellConfig:
+    def _spreads_fit(self) -> WorkCellConfig:
         size, ds = self.object_size_m, self.object_size_spread_m
         if size - ds <= 0.02 or size + ds > 0.15:
             raise ValueError(
@@ -191,7 +193,7 @@ class EdgeConfig(Strict):
 
 
 class PolicyConfig(Strict):
-    """The co-design policy (DESIGN 7)."""
+    """The co-design policy (docs/architecture.md sec. 7)."""
 
     name: Literal["none", "fixed", "heuristic", "learned"] = Field(
         default="none", description="policy: `none` (PDP 1, no budget), `fixed` (constant `pdp`), "
@@ -298,7 +300,7 @@ class Scenario(Strict):
     detailed_loops: int = Field(default=1, ge=0, description="loops simulated in detail K <= N")
     physics_timestep_us: int = Field(default=1000, ge=100, description="MuJoCo timestep, us")
     hall: HallConfig = Field(default_factory=HallConfig, description="hall layout")
-    cell: CellConfig = Field(default_factory=CellConfig, description="conveyor cells")
+    work_cell: WorkCellConfig = Field(default_factory=WorkCellConfig, description="the work cells (every loop's)")
     camera: CameraConfig = Field(default_factory=CameraConfig, description="cameras")
     robot: RobotConfig = Field(default_factory=RobotConfig, description="robot controllers")
     edge: EdgeConfig = Field(default_factory=EdgeConfig, description="Edge application")
@@ -337,7 +339,7 @@ class Scenario(Strict):
         return self
 
     def _cells_in_hall(self) -> None:
-        """Every loop's cell, and so its camera and robot modems, must stand inside the hall."""
+        """Every loop's work cell, and so its camera and robot modems, must stand inside the hall."""
         def outside(n: int) -> tuple[str, tuple[float, float, float]] | None:
             h = self.hall
             for ue, (x, y, z) in self.ue_positions_m(n).items():
@@ -350,11 +352,11 @@ class Scenario(Strict):
         fits = next((n for n in range(self.loops - 1, 0, -1) if outside(n) is None), 0)
         ue, pos = bad
         raise ValueError(
-            f"loops = {self.loops} cells do not fit in the hall ({self.hall.length_m:g} x "
+            f"loops = {self.loops} work cells do not fit in the hall ({self.hall.length_m:g} x "
             f"{self.hall.width_m:g} m): {ue} would stand at ({pos[0]:g}, {pos[1]:g}) m; at most "
-            f"{fits} fit with hall.cells_per_row = {self.hall.cells_per_row} and hall.cell_pitch_m = "
-            f"{tuple(self.hall.cell_pitch_m)}: lower loops, or enlarge hall.length_m / hall.width_m "
-            f"(and hall.cells_per_row, hall.gnb_position_m) to hold them")
+            f"{fits} fit with hall.work_cells_per_row = {self.hall.work_cells_per_row} and "
+            f"hall.work_cell_pitch_m = {tuple(self.hall.work_cell_pitch_m)}: lower loops, or enlarge "
+            f"hall.length_m / hall.width_m (and hall.work_cells_per_row, hall.gnb_position_m) to hold them")
 
     def _hall_into_nr(self) -> None:
         """The NR channel model uses the hall of the scenario; a different one is a mistake."""
@@ -384,7 +386,7 @@ class Scenario(Strict):
         scenario's loops, or of ``loops``)."""
         h = self.hall.ue_height_m
         out: dict[str, tuple[float, float, float]] = {}
-        for i, (x, y) in enumerate(self.hall.cell_origins(self.loops if loops is None else loops)):
+        for i, (x, y) in enumerate(self.hall.work_cell_origins(self.loops if loops is None else loops)):
             out[f"camera-{i}"] = (x - 0.1, y, h)
             out[f"robot-{i}"] = (x, y + 0.6, h)
         return out
@@ -458,6 +460,41 @@ def _given(value: Any) -> str:
     return short.repr(value)[:60]
 
 
+# Fields renamed since scenarios were first written (radio cell and work cell named apart): an
+# old name still loads, once with a warning naming the new one, in files, inline scenarios,
+# overrides and sweep specs.
+RENAMED = {"cell": "work_cell", "hall.cell_pitch_m": "hall.work_cell_pitch_m",
+           "hall.cells_per_row": "hall.work_cells_per_row"}
+
+
+def current_path(path: str) -> str:
+    """``path`` (dotted) under its current name; a FutureWarning when it was an old one."""
+    for old, new in RENAMED.items():
+        if path == old or path.startswith(old + "."):
+            warnings.warn(f"scenario field {old!r} is now {new!r}: rename it (the old name will stop "
+                          "loading)", FutureWarning, stacklevel=3)
+            return new + path[len(old):]
+    return path
+
+
+def _current_fields(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with every renamed field under its current name; ScenarioError when a field is
+    given under both names."""
+    for old, new in RENAMED.items():
+        *parents, leaf = old.split(".")
+        node: Any = data
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            continue
+        new_leaf = new.split(".")[-1]
+        if new_leaf in node:
+            raise ScenarioError([(old, f"given twice, as {old!r} and as its new name {new!r}: keep {new!r}")])
+        current_path(old)
+        node[new_leaf] = node.pop(leaf)
+    return data
+
+
 def _apply_override(data: dict[str, Any], assignment: str) -> None:
     if len(assignment) > MAX_OVERRIDE_CHARS:
         raise ScenarioError([(assignment[:40] + "...", f"an override is at most {MAX_OVERRIDE_CHARS} "
@@ -465,7 +502,8 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
     if "=" not in assignment:
         raise ScenarioError([(assignment, "override must look like field.path=value")])
     path, raw = assignment.split("=", 1)
-    value = parse_value(raw, path.strip()) if raw != "" else ""
+    path = current_path(path.strip())
+    value = parse_value(raw, path) if raw != "" else ""
     node = data
     default: Any = Scenario().model_dump(mode="json")
     parts = path.strip().split(".")
@@ -486,7 +524,7 @@ def parse_scenario(data: Any, overrides: list[str] | None = None) -> Scenario:
     """Validate a scenario mapping (plus ``field.path=value`` overrides) or raise ScenarioError."""
     if not isinstance(data, dict):
         raise ScenarioError([("(scenario)", f"expected a mapping of fields, got {type(data).__name__}")])
-    data = copy.deepcopy(data)
+    data = _current_fields(copy.deepcopy(data))
     for assignment in overrides or []:
         _apply_override(data, assignment)
     try:

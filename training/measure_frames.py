@@ -48,7 +48,7 @@ def measure(sc: Scenario, estimator: str) -> dict[str, Any]:
     rgb0, depth0 = decode_frame(frames[-1])
     cam = sc.camera
     return {
-        "settings": {**camera_settings(cam), "fps": cam.fps, "object_period_s": sc.cell.object_period_s},
+        "settings": {**camera_settings(cam), "fps": cam.fps, "object_period_s": sc.work_cell.object_period_s},
         "frames": len(sizes),
         "frame_bytes": sizes,
         "mean_frame_bytes": float(np.mean(sizes)),
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     base = load_scenario(args.scenario) if args.scenario else default
     args.out.parent.mkdir(parents=True, exist_ok=True)
     sc = parse_scenario({"loops": 1, "detailed_loops": 1, "duration_s": args.seconds,
-                         "cell": {"object_period_s": default.cell.object_period_s / 2},
+                         "work_cell": {"object_period_s": default.work_cell.object_period_s / 2},
                          "camera": base.camera.model_dump(), "edge": {"estimator": base.edge.estimator}})
     result = measure(sc, args.estimator or sc.edge.estimator)
     tmp = args.out.with_suffix(f".{os.getpid()}.tmp")

@@ -10,6 +10,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
+from coordinator.run_state import RunState
 from experiments.job_store import JobKind
 from experiments.jobs import JobService
 from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario, shipped_names
@@ -83,7 +84,7 @@ def runs_router(jobs: JobService, scenarios_dir: Path,
         errors = check(sc)
         if errors:
             raise ScenarioError(errors)
-        return RunAccepted(run_id=jobs.submit_run(sc), status="pending")
+        return RunAccepted(run_id=jobs.submit_run(sc), status=RunState.PENDING)
 
     @router.get("/runs")
     def list_runs() -> list[RunSummary]:

@@ -16,6 +16,7 @@ from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from coordinator.run_state import RunState
 from experiments.job_store import JobKind
 from experiments.jobs import JobService
 from experiments.spec import SweepError, SweepSpec, parse_spec
@@ -23,9 +24,9 @@ from interfaces.pages import sweep_page
 from scenario.schema import shipped_names
 
 # What a client may fetch of a sweep's directory: the derived files, by exact name.
-SWEEP_FILES = {f"{stem}.{ext}" for stem in ("fig4_success", "fig5_traffic", "fig6_latency_cdf")
-               for ext in ("png", "svg")} | {"capacity.json", "report.md", "points.parquet", "summary.parquet",
-                                             "loops.parquet", "cell_capacity.json"}
+SWEEP_FILES = {f"{stem}.{ext}" for stem in ("fig4_success", "fig5_traffic", "fig6_latency_cdf", "fig7_gain",
+                                            "fig8_map") for ext in ("png", "svg")} | {"capacity.json", "report.md", "points.parquet", "summary.parquet",
+                                             "loops.parquet", "radio_cell_capacity.json"}
 MEDIA = {".png": "image/png", ".svg": "image/svg+xml", ".json": "application/json", ".md": "text/markdown",
          ".parquet": "application/vnd.apache.parquet"}
 
@@ -129,7 +130,7 @@ def sweeps_router(jobs: JobService, sweeps_dir: Path, scenarios_dir: Path,
             raise SweepError(errors)
         sweep_id, points = jobs.submit_sweep(spec)
         on_change()
-        return SweepAccepted(sweep_id=sweep_id, state="pending", points=points)
+        return SweepAccepted(sweep_id=sweep_id, state=RunState.PENDING, points=points)
 
     @router.get("/sweeps")
     def list_sweeps() -> list[SweepSummary]:

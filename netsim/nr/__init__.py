@@ -12,7 +12,7 @@ from fabric.native import use_native
 # The compiled build of this package's modules, where a fresh one exists (fabric.native).
 use_native(__name__, __path__)
 
-from netsim.nr.cell import NrCell  # noqa: E402
+from netsim.nr.radio_cell import NrCell  # noqa: E402
 from scenario.nr import NrConfig  # noqa: E402
 
 __all__ = ["NrCell", "NrConfig"]

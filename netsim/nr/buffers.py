@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from netsim.cell import Packet
+from netsim.radio_cell import Packet
 
 
 class PacketEntry:

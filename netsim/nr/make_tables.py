@@ -18,8 +18,8 @@ BLER model (one logistic curve per MCS and code-block size K, in SNR dB)::
 
 so BLER(T10) = 10 %. Anchors:
 
-- T10 at K = 2000 bits and at K = 24 bits for MCS table 1, MCS 3..28: the AWGN thresholds of
-  ``shared/reference/nr-phy-mac.md`` (read from Sionna's PDSCH link-level tables). MCS 0..2 have
+- T10 at K = 2000 bits and at K = 24 bits for MCS table 1, MCS 3..28: the AWGN thresholds read from
+  Sionna's PDSCH link-level tables (``T10_ANCHORS_TABLE_1`` below). MCS 0..2 have
   no anchor: T10 = 10 log10(2^SE - 1) + 1.0 dB (the Shannon-gap rule, gap measured at MCS 3),
   with the 24-bit penalty of MCS 3. The anchors are noisy (+-0.5 to 0.9 dB), so both anchor
   columns are made strictly increasing in MCS (at least 0.1 dB per step) and the short-block

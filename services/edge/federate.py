@@ -9,12 +9,12 @@ from typing import Any
 
 import cv2
 
-from domain.cell_geometry import CameraIntrinsics
 from domain.codec import decode_frame, slot_after
 from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
 from domain.estimator import Detection, make_estimator
 from domain.policy import Qos
 from domain.tracker import Tracker
+from domain.work_cell import CameraIntrinsics
 from fabric.compute import ComputeNode
 from fabric.federate import Federate
 from fabric.messages import Message
@@ -32,9 +32,9 @@ class EdgeFederate(Federate):
         k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
         # A learned estimator whose model cannot be loaded falls back to the classical one; the
         # warning is logged and the summary names the estimator that ran and why.
-        self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.cell.object_size_m)
+        self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.work_cell.object_size_m)
         self.loops = list(range(sc.detailed_loops))
-        self.trackers = {i: Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
+        self.trackers = {i: Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
         self.codesign = CoDesign.for_scenario(sc)
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}

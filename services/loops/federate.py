@@ -1,4 +1,4 @@
-"""The abstract loops (DESIGN 6): the N-K loops that are not rendered, in one process.
+"""The abstract loops (docs/architecture.md sec. 6): the N-K loops that are not rendered, in one process.
 
 Each abstract loop injects camera traffic with frame sizes drawn from a distribution measured on
 real compressed frames of the detailed camera, through netsim like any other loop; when netsim
@@ -69,8 +69,8 @@ class LoopsFederate(Federate):
         for i in range(sc.detailed_loops, sc.loops):
             self.loops[i] = AbstractLoop(
                 index=i,
-                ctl=PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S),
-                tracker=Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)),
+                ctl=PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S),
+                tracker=Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)),
                 keep_rng=self.rng(f"camera-{i}/pdp"), size_rng=self.rng(f"camera-{i}/size"),
                 error_rng=self.rng(f"edge-{i}/error"),
                 camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),

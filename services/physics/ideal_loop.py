@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import SERVO_LAG_S
 from domain.controller import PickController
 from domain.sensor import frame_offset_us
@@ -53,10 +53,10 @@ def run_ideal(sc: Scenario, delay_us: int = 0, frame_loss: float = 0.0, world: W
         raise ValueError(f"delay_us must be >= 0, got {delay_us}")
     world = world or World(sc)
     step = sc.physics_timestep_us
-    ctls = [PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S) for _ in range(sc.loops)]
+    ctls = [PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S) for _ in range(sc.loops)]
     loss_rngs = [rng(sc.seed, f"ideal/frame-loss-c{i}") for i in range(sc.loops)]
     error_rngs = [rng(sc.seed, f"ideal/pose-error-c{i}") for i in range(sc.loops)]
-    trackers = [Tracker((sc.cell.belt_speed_m_s, 0.0, 0.0)) for _ in range(sc.loops)]
+    trackers = [Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)) for _ in range(sc.loops)]
     # One time-ordered queue of everything that happens: (t_us, order, seq, kind, payload).
     queue: list[tuple[int, int, int, str, Any]] = []
     seq = 0

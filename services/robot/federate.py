@@ -22,7 +22,7 @@ class RobotFederate(Federate):
         self.loop = int(self.name.rsplit("-", 1)[1])
         self.cpu = ComputeNode(self.name, sc.nodes.robot, self.rng("compute"))
         self.record_jobs(self.cpu)
-        self.ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
+        self.ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)
         self.estimates = 0
         self.schedule(0, self._tick)
 

@@ -11,7 +11,7 @@ import random
 import sys
 import time
 
-TARGET_CPU_S = 0.070  # DESIGN.md section 5 measured a 68 ms job
+TARGET_CPU_S = 0.070  # docs/architecture.md sec. 5 measured a 68 ms job
 
 
 def work(n: int) -> int:

@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 from support import MODEL_TIMING_SETS
 
-from training.policy.cells import DEFAULT_FAMILY
+from training.policy.work_cells import DEFAULT_FAMILY
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
@@ -33,7 +33,7 @@ def run(scenario: str, sets: list[str], results: Path) -> dict[str, Any]:
 def outcomes(kpis: dict[str, Any]) -> dict[tuple[int, int], str]:
     """Each task's outcome (placed, missed, dropped, or unfinished when the run ended first)."""
     tasks = pq.read_table(Path(kpis["results_dir"]) / "tasks.parquet").to_pylist()
-    return {(t["cell"], t["task_id"]): t["outcome"] for t in tasks}
+    return {(t["work_cell"], t["task_id"]): t["outcome"] for t in tasks}
 
 
 def test_learned_policy_runs_at_the_edge_of_the_smoke_scenario(tmp_path: Path) -> None:
@@ -51,7 +51,7 @@ def test_learned_policy_runs_at_the_edge_of_the_smoke_scenario(tmp_path: Path) -
 
 # A fast, dense work cell of the family (belt 0.4 m/s, a part every 3 s): PDP 1 places every task
 # up to 20 loops and collapses past them (25 % at 24 loops).
-FAST_DENSE = ["cell.belt_speed_m_s=0.4", "cell.object_period_s=3.0", "cell.object_jitter_s=0.3",
+FAST_DENSE = ["work_cell.belt_speed_m_s=0.4", "work_cell.object_period_s=3.0", "work_cell.object_jitter_s=0.3",
               "detailed_loops=0", "duration_s=15", *MODEL_TIMING_SETS]
 
 

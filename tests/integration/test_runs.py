@@ -78,7 +78,7 @@ def test_the_core_group_simulates_what_separate_processes_do(tmp_path: Path, det
             assert result.kpis["windows"] < 100 if cohost == "core" else result.kpis["windows"] > 2000
         tables[cohost] = {name: pq.read_table(result.run_dir / f"{name}.parquet").sort_by(keys).to_pylist()
                           for name, keys in (("packets", "packet_id"),
-                                            ("tasks", [("cell", "ascending"), ("task_id", "ascending")]))}
+                                            ("tasks", [("work_cell", "ascending"), ("task_id", "ascending")]))}
     assert tables["core"] == tables["none"]
     assert len(tables["core"]["packets"]) > 1000
 

@@ -84,7 +84,7 @@ def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path:
     assert all(r["ul_packets"] > 0 and r["mean_pdp"] == 1.0 for r in loops)
     cap = json.loads((sweep_dir / "capacity.json").read_text())
     assert cap["series"]["all"]["success>=100%"]["capacity"] in (0, 1, 2, 3)
-    assert cap["cell_ul_capacity_mbps"] > 100
+    assert cap["radio_cell_ul_capacity_mbps"] > 100
     for stem in FIGURES:
         for ext in ("png", "svg"):
             assert (sweep_dir / f"{stem}.{ext}").stat().st_size > 1000

@@ -71,7 +71,7 @@ def tiny_scenario() -> Scenario:
     return parse_scenario({
         "name": "conformance", "seed": 3, "duration_s": END_US / 1e6, "loops": 2, "detailed_loops": 1,
         "camera": {"width_px": 64, "height_px": 48},
-        "cell": {"first_object_s": 0.02, "object_period_s": 1.0},
+        "work_cell": {"first_object_s": 0.02, "object_period_s": 1.0},
         "nodes": {"camera": model, "edge": model, "robot": model},
     })
 

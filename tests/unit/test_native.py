@@ -120,7 +120,7 @@ def test_the_compiled_cell_computes_what_the_pure_one_does() -> None:
         pytest.skip("no compiled build (make native)")
     no_modules, pure = _standalone(pure=True)
     assert no_modules == []
-    assert {"netsim.cell", "netsim.nr.cell", "netsim.nr.buffers", "netsim.nr.scheduler"} <= set(modules)
+    assert {"netsim.radio_cell", "netsim.nr.radio_cell", "netsim.nr.buffers", "netsim.nr.scheduler"} <= set(modules)
     assert compiled == pure
     saturated, budget = json.loads(compiled)
     assert saturated["lost_packets"]["buffer_overflow"] > 0  # full buffers

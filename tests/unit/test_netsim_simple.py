@@ -7,7 +7,7 @@ from collections import Counter
 import numpy as np
 
 from fabric.tables import PACKETS
-from netsim.cell import LOSS_BUFFER, LOSS_DELAY_BUDGET, FlowQos, Packet
+from netsim.radio_cell import LOSS_BUFFER, LOSS_DELAY_BUDGET, FlowQos, Packet
 from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
 

@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from domain.cell_geometry import CameraIntrinsics
 from domain.codec import decode_frame, encode_frame, slot_after, split_packets
 from domain.estimator import ClassicalEstimator, make_estimator
 from domain.pose_net import DEFAULT_MODEL, LearnedEstimator
@@ -25,6 +24,7 @@ from domain.sensor import (
     sensor_for,
 )
 from domain.tracker import Tracker
+from domain.work_cell import CameraIntrinsics
 from domain.world import World
 from fabric.seeding import rng
 from scenario.schema import parse_scenario

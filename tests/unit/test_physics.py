@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
 from domain.controller import PickController
 from domain.hall import build_mjcf, object_pool_size
@@ -20,7 +20,7 @@ from scenario.schema import ScenarioError, parse_scenario
 from services.physics.ideal_loop import run_ideal
 from services.physics.stepper import LIBRARY, NativeStepAhead, StepAhead, Stepper, step_ahead
 
-# UR5e-class DH table (shared/reference/robot-cell.md): a, d, alpha, link mass.
+# UR5e-class DH table (Universal Robots' published kinematics parameters): a, d, alpha, link mass.
 DH_A = [0.0, -0.425, -0.3922, 0.0, 0.0, 0.0]
 DH_D = [0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996]
 DH_ALPHA = [np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0]
@@ -67,7 +67,7 @@ def test_hall_mjcf_compiles_and_steps_10_s_without_warnings(loops: int) -> None:
 
 
 def test_world_with_varied_parts_steps_10_s_without_warnings() -> None:
-    sc = parse_scenario({"loops": 2, "duration_s": 10, "cell": VARIED})
+    sc = parse_scenario({"loops": 2, "duration_s": 10, "work_cell": VARIED})
     world = World(sc)
     plan = sorted((t, i, kw) for i in range(2) for t, kw in spawn_plan(sc, np.random.default_rng(3), 1000))
     for t, i, kw in plan:
@@ -135,8 +135,8 @@ def test_solve_many_gives_solve_s_joints_to_the_bit() -> None:
 def test_controller_taken_apart_commands_what_step_commands() -> None:
     """plan, then one ``solve_many`` over the arms, then command: the joints ``step`` gives."""
     sc = parse_scenario({"loops": 1})
-    whole = [PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
-    apart = [PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
+    whole = [PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
+    apart = [PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
     kin = ArmKinematics()
     for ctl in whole + apart:
         ctl.on_state(list(HOME_Q), False)
@@ -164,10 +164,10 @@ def test_controller_taken_apart_commands_what_step_commands() -> None:
 # ---- scenario fields ----------------------------------------------------------------------------
 def test_part_spreads_are_validated() -> None:
     with pytest.raises(ScenarioError, match="object_size_spread_m"):
-        parse_scenario({"cell": {"object_size_m": 0.06, "object_size_spread_m": 0.05}})
+        parse_scenario({"work_cell": {"object_size_m": 0.06, "object_size_spread_m": 0.05}})
     with pytest.raises(ScenarioError, match="object_mass_spread_kg"):
-        parse_scenario({"cell": {"object_mass_kg": 0.3, "object_mass_spread_kg": 0.3}})
-    sc = parse_scenario({"cell": {**VARIED, "object_lateral_spread_m": 0.05}, "duration_s": 60})
+        parse_scenario({"work_cell": {"object_mass_kg": 0.3, "object_mass_spread_kg": 0.3}})
+    sc = parse_scenario({"work_cell": {**VARIED, "object_lateral_spread_m": 0.05}, "duration_s": 60})
     plan = spawn_plan(sc, np.random.default_rng(1), sc.physics_timestep_us)
     sizes = [kw["size_m"] for _, kw in plan]
     assert len(plan) == 15 and 0.05 <= min(sizes) and max(sizes) <= 0.07
@@ -255,7 +255,7 @@ class SteppedWorld(World):
 def test_a_stepper_steps_the_world_exactly_as_advance_to(kind: str) -> None:
     """Picks and places with the steps' mj_step in the stepper's thread: the same tasks, the same
     state to the bit; observations held while a step runs."""
-    sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {**VARIED, "object_period_s": 3.0}})
+    sc = parse_scenario({"loops": 2, "duration_s": 8, "work_cell": {**VARIED, "object_period_s": 3.0}})
     plain, threaded = World(sc), SteppedWorld(sc, kind)
     plain_result, threaded_result = run_ideal(sc, world=plain), run_ideal(sc, world=threaded)
     placed = [t for t in plain_result.tasks if t["outcome"] == "placed"]
@@ -344,12 +344,12 @@ def test_observations_during_a_step_show_its_start_before_the_belt_drive() -> No
     assert world.objects(0) == before  # velocities as before the belt drive, positions as before the step
     stepper.wait()
     after = world.objects(0)
-    assert after[0]["v"][0] == pytest.approx(sc.cell.belt_speed_m_s) and after[0]["p"] != before[0]["p"]
+    assert after[0]["v"][0] == pytest.approx(sc.work_cell.belt_speed_m_s) and after[0]["p"] != before[0]["p"]
     stepper.close()
 
 
 def test_ended_tasks_are_taken_up_to_a_time() -> None:
-    sc = parse_scenario({"loops": 2, "duration_s": 8, "cell": {"object_period_s": 3.0}})
+    sc = parse_scenario({"loops": 2, "duration_s": 8, "work_cell": {"object_period_s": 3.0}})
     world = World(sc)
     run_ideal(sc, world=world)
     rows = [t.row() for t in world.tasks]  # every task has ended: unfinished ones at the run's end
@@ -363,7 +363,7 @@ def test_ended_tasks_are_taken_up_to_a_time() -> None:
 
 def test_controller_places_every_part_with_ideal_poses() -> None:
     """Ground-truth pose at each camera frame, no delay: every part placed (>= 10 tasks)."""
-    sc = parse_scenario({"loops": 4, "duration_s": 14, "cell": {**VARIED, "object_period_s": 3.0}})
+    sc = parse_scenario({"loops": 4, "duration_s": 14, "work_cell": {**VARIED, "object_period_s": 3.0}})
     res = run_ideal(sc)
     assert len(res.tasks) >= 10
     assert all(t["outcome"] == "placed" for t in res.tasks), [t for t in res.tasks if not t["success"]]
@@ -371,7 +371,7 @@ def test_controller_places_every_part_with_ideal_poses() -> None:
 
 
 def test_delay_compensation_matters_at_200_ms() -> None:
-    sc = parse_scenario({"loops": 2, "duration_s": 14, "cell": {"object_period_s": 3.0}})
+    sc = parse_scenario({"loops": 2, "duration_s": 14, "work_cell": {"object_period_s": 3.0}})
     compensated = run_ideal(sc, delay_us=200_000)
     naive = run_ideal(sc.model_copy(update={"robot": sc.robot.model_copy(update={"delay_compensation": False})}),
                       delay_us=200_000)
@@ -382,7 +382,7 @@ def test_delay_compensation_matters_at_200_ms() -> None:
 
 def test_stale_estimates_make_the_arm_hold_instead_of_descending() -> None:
     sc = parse_scenario({"loops": 1})
-    ctl = PickController(sc.robot, sc.cell.object_size_m, SERVO_LAG_S)
+    ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)
     ctl.on_state(list(HOME_Q), False)
     track = {"id": 0, "t_us": 0, "p": [-0.3, 0.0, 0.78], "v": [0.2, 0.0, 0.0]}
     ctl.on_estimate([track])
@@ -397,7 +397,7 @@ def test_stale_estimates_make_the_arm_hold_instead_of_descending() -> None:
 def test_ideal_network_success_over_200_tasks() -> None:
     """The benchmark-style version: >= 200 tasks with varied parts, >= 99% placed (about a
     minute on two shared cores)."""
-    sc = parse_scenario({"loops": 8, "duration_s": 106, "seed": 7, "cell": VARIED})
+    sc = parse_scenario({"loops": 8, "duration_s": 106, "seed": 7, "work_cell": VARIED})
     res = run_ideal(sc)
     assert len(res.tasks) >= 200
     assert res.success_rate >= 0.99, [t for t in res.tasks if not t["success"]]

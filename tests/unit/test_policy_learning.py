@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from domain import cell_geometry as g
 from domain import policy_features as F
+from domain import work_cell as g
 from domain.congestion import LinkEstimate
 from domain.edge_side import CoDesign
 from domain.policy import DEFAULT_POLICY_MODEL, LoopState, make_policy
 from domain.tracker import Tracker
-from scenario.schema import CellConfig, PolicyConfig, Scenario
+from scenario.schema import PolicyConfig, Scenario, WorkCellConfig
 
 ROOT = Path(__file__).parents[2]
 needs_gym = pytest.mark.skipif(importlib.util.find_spec("gymnasium") is None,
@@ -63,7 +63,7 @@ def test_features_of_an_empty_belt_are_finite_and_bounded() -> None:
 
 
 def test_codesign_builds_the_state_from_the_cell_and_remembers_spawns() -> None:
-    sc = Scenario(loops=12, cell=CellConfig(belt_speed_m_s=0.3, object_period_s=3.0))
+    sc = Scenario(loops=12, work_cell=WorkCellConfig(belt_speed_m_s=0.3, object_period_s=3.0))
     cd = CoDesign.for_scenario(sc)
     tracker = Tracker((0.3, 0.0, 0.0))
     tracker.update(400_000, [np.array([-0.4, 0.0, 0.78])])
@@ -145,9 +145,9 @@ def test_model_trained_on_other_features_is_refused(tmp_path: Path) -> None:
 def test_a_cell_outside_the_learned_policys_family_is_refused_naming_both() -> None:
     card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
     lo, hi = card["family"]["belt_speed_m_s"]
-    CoDesign(PolicyConfig(name="learned"), CellConfig(belt_speed_m_s=hi))
-    with pytest.raises(ValueError, match=rf"cell.belt_speed_m_s = 0.8 .*belt_speed_m_s {lo}-{hi}"):
-        CoDesign(PolicyConfig(name="learned"), CellConfig(belt_speed_m_s=0.8))
+    CoDesign(PolicyConfig(name="learned"), WorkCellConfig(belt_speed_m_s=hi))
+    with pytest.raises(ValueError, match=rf"work_cell.belt_speed_m_s = 0.8 .*belt_speed_m_s {lo}-{hi}"):
+        CoDesign(PolicyConfig(name="learned"), WorkCellConfig(belt_speed_m_s=0.8))
 
 
 # ---- the training environment -----------------------------------------------------------------
@@ -184,13 +184,13 @@ def test_environment_is_deterministic_per_seed() -> None:
     a, b, c = trace(3), trace(3), trace(4)
     assert len(a[0]) == 81  # 4 s of 50 ms policy periods, plus the first observation
     assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0], strict=True)) and a[1] == b[1]
-    assert a[2] == b[2] and a[2]["cell"] != c[2]["cell"]
+    assert a[2] == b[2] and a[2]["work_cell"] != c[2]["work_cell"]
 
 
 @needs_gym
 def test_observation_is_the_shared_feature_function_and_cells_stay_in_the_schema() -> None:
-    from training.policy.cells import DEFAULT_FAMILY
     from training.policy.env import PickLoopEnv
+    from training.policy.work_cells import DEFAULT_FAMILY
 
     env = PickLoopEnv(episode_s=2.0)
     obs, _ = env.reset(seed=1)
@@ -198,7 +198,7 @@ def test_observation_is_the_shared_feature_function_and_cells_stay_in_the_schema
         obs, *_ = env.step(np.array([4, 2]))
     assert np.array_equal(obs, F.features(env.loop_state()))
     rng = np.random.default_rng(0)
-    for _ in range(200):  # the family's draws pass the schema's validators (CellConfig raises)
+    for _ in range(200):  # the family's draws pass the schema's validators (WorkCellConfig raises)
         cell, loops = DEFAULT_FAMILY.draw(rng)
         assert 0.1 <= cell.belt_speed_m_s <= 0.5 and 2.0 <= cell.object_period_s <= 6.0 and 1 <= loops <= 40
 

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from domain import cell_geometry as g
+from domain import work_cell as g
 from domain.congestion import (
     CELL_ALPHA,
     CUT,
@@ -24,7 +24,7 @@ from domain.edge_side import CoDesign, bounded_pdp
 from domain.policy import LoopState, Qos, pdp_for_deadline
 from domain.safety_floor import FloorLimits, next_part_earliest_us, safety_floor
 from domain.tracker import Tracker
-from scenario.schema import CellConfig, PolicyConfig
+from scenario.schema import PolicyConfig, WorkCellConfig
 
 LIMITS = FloorLimits(max_estimate_age_s=0.4, miss_rate=0.0, risk=0.01, period_s=0.05)
 NOW = 10_000_000
@@ -140,7 +140,7 @@ def test_the_monitor_measures_queueing_above_each_loops_base_delay_and_loss_by_t
 
 
 def test_pdp_1_is_never_bounded_and_every_co_design_policy_is() -> None:
-    cell = CellConfig(belt_speed_m_s=0.45, object_period_s=2.5)
+    cell = WorkCellConfig(belt_speed_m_s=0.45, object_period_s=2.5)
     none = CoDesign(PolicyConfig(name="none"), cell)
     assert none.limits is None and none.load is None
     fixed = CoDesign(PolicyConfig(name="fixed", pdp=0.1), cell)

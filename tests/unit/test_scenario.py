@@ -56,9 +56,9 @@ def test_cell_layout_gives_every_ue_a_position_in_the_hall() -> None:
 
 def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
     assert parse_scenario({"loops": 64, "detailed_loops": 0}).loops == 64
-    with pytest.raises(ScenarioError, match=r"loops = 72 cells do not fit in the hall .* at most 64 fit"):
+    with pytest.raises(ScenarioError, match=r"loops = 72 work cells do not fit in the hall .* at most 64 fit"):
         parse_scenario({"loops": 72, "detailed_loops": 0})
-    wide = {"length_m": 120, "width_m": 100, "gnb_position_m": [60, 50, 1.5], "cells_per_row": 12}
+    wide = {"length_m": 120, "width_m": 100, "gnb_position_m": [60, 50, 1.5], "work_cells_per_row": 12}
     assert parse_scenario({"loops": 128, "detailed_loops": 0, "hall": wide}).loops == 128
 
 
@@ -75,3 +75,20 @@ def test_cli_bad_input_exits_2_without_traceback(tmp_path: Path, capsys: pytest.
     assert "actuation_latency_us = 10 us is below window_us" in capsys.readouterr().err
     assert main(["validate", str(SCENARIOS[0]), "--set", "loops=zero"]) == 2
     assert main(["validate", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_old_field_names_load_once_with_a_warning_naming_the_new_ones(tmp_path: Path) -> None:
+    """The work cell was `cell`, and the hall's `cells_per_row` and `cell_pitch_m` named it too:
+    scenario files, inline scenarios and overrides written then still load."""
+    path = tmp_path / "old.yaml"
+    path.write_text("loops: 4\ncell: {belt_speed_m_s: 0.3}\nhall: {cells_per_row: 2, cell_pitch_m: [6, 6]}\n")
+    with pytest.warns(FutureWarning) as warned:
+        sc = load_scenario(path, ["cell.object_period_s=3.0"])
+    said = {str(w.message).split(":")[0] for w in warned}
+    assert said == {f"scenario field {old!r} is now {new!r}" for old, new in
+                    (("cell", "work_cell"), ("hall.cells_per_row", "hall.work_cells_per_row"),
+                     ("hall.cell_pitch_m", "hall.work_cell_pitch_m"))}
+    assert (sc.work_cell.belt_speed_m_s, sc.work_cell.object_period_s) == (0.3, 3.0)
+    assert (sc.hall.work_cells_per_row, tuple(sc.hall.work_cell_pitch_m)) == (2, (6.0, 6.0))
+    with pytest.raises(ScenarioError, match="given twice.*keep 'work_cell'"):
+        parse_scenario({"cell": {}, "work_cell": {}})

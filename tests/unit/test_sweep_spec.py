@@ -232,7 +232,7 @@ def test_variants_sweep_named_sets_of_fields() -> None:
     controls = {p.values["variant"]: p.scenario.policy.controls for p in expand(codesign, SCENARIOS)}
     assert controls["learned_lower_pdp_only"] == "pdp" and controls["learned_lower"] == "both"
     family = load_spec(ROOT / "configs" / "sweeps" / "codesign_family.yaml", SCENARIOS)
-    speeds = {p.values["variant"]: p.scenario.cell.belt_speed_m_s for p in expand(family, SCENARIOS)}
+    speeds = {p.values["variant"]: p.scenario.work_cell.belt_speed_m_s for p in expand(family, SCENARIOS)}
     assert speeds["cell2_none"] == speeds["cell2_learned_lower"] == 0.2869
 
 
@@ -322,3 +322,12 @@ def test_the_capacity_group_must_be_a_grid_field_other_than_the_load() -> None:
 
 def test_the_map_field_must_be_a_grid_field() -> None:
     assert "figures.map_y" in errors_of(spec(figures={"map_y": "seed"}))[0][1]
+
+
+def test_a_spec_written_with_old_field_names_loads_under_the_new_ones() -> None:
+    data = {"name": "old", "base": "baseline", "grid": {"loops": [2], "cell.belt_speed_m_s": [0.2, 0.3]},
+            "set": {"cell.object_period_s": 3.0}, "variants": {"v": {"hall.cells_per_row": 4}}}
+    with pytest.warns(FutureWarning):
+        spec = parse_spec(data)
+    assert set(spec.grid) == {"variant", "loops", "work_cell.belt_speed_m_s"}
+    assert spec.set == {"work_cell.object_period_s": 3.0} and spec.variants == {"v": {"hall.work_cells_per_row": 4}}

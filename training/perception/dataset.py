@@ -59,7 +59,7 @@ def _episode_conditions(r: np.random.Generator, split: str) -> dict[str, Any]:
         "camera": {"width_px": w, "height_px": h, "jpeg_quality": int(r.integers(70, 93)),
                    "depth_subpixel_px": float(r.uniform(0.06, 0.1)),
                    "depth_decimation": int(r.choice([2, 4], p=[0.2, 0.8]))},
-        "cell": {"object_period_s": period, "object_jitter_s": float(r.uniform(0.0, 0.4 * period)),
+        "work_cell": {"object_period_s": period, "object_jitter_s": float(r.uniform(0.0, 0.4 * period)),
                  "object_size_m": size, "object_size_spread_m": spread,
                  "object_yaw_spread_deg": 45.0, "object_lateral_spread_m": float(r.uniform(0.02, 0.1)),
                  "belt_speed_m_s": float(r.uniform(0.15, 0.3)), "first_object_s": 0.2},
@@ -93,7 +93,7 @@ def render_episode(spec: EpisodeSpec) -> tuple[list[bytes], list[dict[str, Any]]
     r = rng(seed, "dataset/conditions")
     cond = _episode_conditions(r, spec.split)
     sc = parse_scenario({"seed": seed, "loops": 1, "detailed_loops": 1, "duration_s": spec.seconds,
-                         "cell": cond["cell"], "camera": cond["camera"]})
+                         "work_cell": cond["work_cell"], "camera": cond["camera"]})
     times, t = [], 1_000_000
     while t < sc.duration_us:
         times.append(t)
@@ -111,11 +111,11 @@ def render_frames(sc: Any, times_us: list[int], cond: dict[str, Any] | None = No
     (compressed frames, labels)."""
     import mujoco
 
-    from domain import cell_geometry as g
-    from domain.cell_geometry import CameraIntrinsics
+    from domain import work_cell as g
     from domain.codec import encode_frame
     from domain.offline_render import working_cell
     from domain.sensor import sense, sensor_depth_mm, sensor_for
+    from domain.work_cell import CameraIntrinsics
     from domain.world import World
     from fabric.seeding import rng
 
@@ -128,7 +128,7 @@ def render_frames(sc: Any, times_us: list[int], cond: dict[str, Any] | None = No
     sensor = sensor_for(cam)
     noise = rng(seed, "dataset/sensor")
     m = world.model
-    origin = np.array([*sc.hall.cell_origins(sc.loops)[0], 0.0])
+    origin = np.array([*sc.hall.work_cell_origins(sc.loops)[0], 0.0])
     bodies: list[int] = []
     geoms: list[int] = []
     while (b := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"c0_obj{len(bodies)}")) >= 0:
@@ -165,7 +165,7 @@ def render_frames(sc: Any, times_us: list[int], cond: dict[str, Any] | None = No
         rgb_s, dep_s = sense(sensor, rgb, sensor_depth_mm(depth, cam.depth_noise_mm, noise), noise)
         frames.append(encode_frame(rgb_s, dep_s, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation))
         labels.append({"t_us": t_us, "bytes": len(frames[-1]), "width": cam.width_px, "height": cam.height_px,
-                       "fovy_deg": cam.fovy_deg, "nominal_size_m": sc.cell.object_size_m, "parts": parts})
+                       "fovy_deg": cam.fovy_deg, "nominal_size_m": sc.work_cell.object_size_m, "parts": parts})
     seg.close()
     world.finish()
     return frames, labels

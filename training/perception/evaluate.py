@@ -16,8 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from domain.cell_geometry import CameraIntrinsics
 from domain.codec import decode_frame
+from domain.work_cell import CameraIntrinsics
 
 GATE_M = 0.04  # an estimate this close to a part's centre is that part's detection
 IN_VIEW_VISIBLE = 0.8  # share of the top face's pixel area that must be visible

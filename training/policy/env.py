@@ -50,9 +50,9 @@ from domain.tracker import Tracker
 from domain.world import World, spawn_plan
 from fabric.compute import DEFAULT_JOB_MODELS, draw_model_us
 from fabric.seeding import rng
-from scenario.schema import CellConfig, PolicyConfig, Scenario
-from training.policy.cells import DEFAULT_FAMILY, CellFamily
+from scenario.schema import PolicyConfig, Scenario, WorkCellConfig
 from training.policy.network import NetworkModel
+from training.policy.work_cells import DEFAULT_FAMILY, WorkCellFamily
 
 ENV_ID = "cosim5g/PickLoop-v0"
 DEFAULT_LAMBDA = 10.0
@@ -80,7 +80,7 @@ class PickLoopEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, lam: float = DEFAULT_LAMBDA, episode_s: float = EPISODE_S,
-                 family: CellFamily = DEFAULT_FAMILY, cell: CellConfig | None = None,
+                 family: WorkCellFamily = DEFAULT_FAMILY, cell: WorkCellConfig | None = None,
                  loops: int | None = None, network: NetworkModel | None = None,
                  floor: bool = True, load_control: bool = True) -> None:
         super().__init__()
@@ -103,10 +103,10 @@ class PickLoopEnv(gym.Env):
         super().reset(seed=seed)
         opts = options or {}
         drawn_cell, drawn_loops = self.family.draw(self.np_random)
-        cell = opts.get("cell") or self.fixed_cell or drawn_cell
+        cell = opts.get("work_cell") or self.fixed_cell or drawn_cell
         loops = int(opts.get("loops") or self.fixed_loops or drawn_loops)
         ep_seed = int(self.np_random.integers(2**31 - 1))
-        self.sc = sc = Scenario(seed=ep_seed, loops=1, detailed_loops=1, cell=cell,
+        self.sc = sc = Scenario(seed=ep_seed, loops=1, detailed_loops=1, work_cell=cell,
                                 duration_s=self.episode_s + 1.0)
         self.loops = loops
         self.world = World(sc)
@@ -138,7 +138,7 @@ class PickLoopEnv(gym.Env):
         self.stats = {"steps": 0, "placed": 0, "missed": 0, "dropped": 0, "frames": 0, "frames_kept": 0,
                       "frames_delivered": 0, "cost": 0.0, "pdp_sum": 0.0, "budget_ms_sum": 0.0,
                       "load_sum": 0.0}
-        return self._obs(), {"cell": cell.model_dump(), "loops": loops, "seed": ep_seed}
+        return self._obs(), {"work_cell": cell.model_dump(), "loops": loops, "seed": ep_seed}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         return self.step_qos(action_qos(action))

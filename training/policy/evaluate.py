@@ -8,6 +8,7 @@ camera traffic it injects per loop, the mean latency budget, the mean cost and r
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -29,11 +30,11 @@ def policy_for(name: str, model: str | None = None) -> Policy:
 
 def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISODES,
                  seed0: int = EVAL_SEED, lam: float = DEFAULT_LAMBDA, bounded: bool = True,
-                 **env_kw: Any) -> dict[str, Any]:
+                 floor: bool | None = None, **env_kw: Any) -> dict[str, Any]:
     """Run ``decide`` on ``episodes`` cells; the pooled results and one row per episode.
     ``bounded``: the safety floor and the load control bound its PDP, as they bound every
-    co-design policy at the Edge (not PDP 1, the reference)."""
-    env = PickLoopEnv(lam=lam, floor=bounded, load_control=bounded, **env_kw)
+    co-design policy at the Edge (not PDP 1, the reference); ``floor`` alone overrides the floor's."""
+    env = PickLoopEnv(lam=lam, floor=bounded if floor is None else floor, load_control=bounded, **env_kw)
     rows = []
     for i in range(episodes):
         _, info = env.reset(seed=seed0 + i)
@@ -45,9 +46,14 @@ def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISOD
                 break
         s = step_info["summary"]
         rows.append({"seed": seed0 + i, "loops": info["loops"],
-                     "belt_speed_m_s": info["cell"]["belt_speed_m_s"],
-                     "object_period_s": info["cell"]["object_period_s"], "return": ret, **s})
+                     "belt_speed_m_s": info["work_cell"]["belt_speed_m_s"],
+                     "object_period_s": info["work_cell"]["object_period_s"], "return": ret, **s})
     return {"episodes": episodes, "lambda": lam, **pool(rows), "rows": rows}
+
+
+def idle_link(state: LoopState) -> LoopState:
+    """``state`` as on an idle radio cell: no queueing delay (the load feature frozen)."""
+    return dataclasses.replace(state, link=dataclasses.replace(state.link, cell_queueing_s=0.0))
 
 
 def pool(rows: list[dict[str, Any]]) -> dict[str, Any]:

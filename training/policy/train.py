@@ -59,16 +59,17 @@ def missing_packages() -> str | None:
 
 
 # ---- training ----------------------------------------------------------------------------------
-def make_env(lam: float, episode_s: float) -> Any:
+def make_env(lam: float, episode_s: float, load_control: bool = True) -> Any:
     from stable_baselines3.common.monitor import Monitor
 
     from training.policy.env import PickLoopEnv
 
-    return Monitor(PickLoopEnv(lam=lam, episode_s=episode_s), info_keywords=("summary",))
+    return Monitor(PickLoopEnv(lam=lam, episode_s=episode_s, load_control=load_control),
+                   info_keywords=("summary",))
 
 
 def train(lam: float, steps: int, seed: int, hyper: dict[str, Any], episode_s: float, threads: int,
-          log: Any = print) -> tuple[Any, list[dict[str, float]]]:
+          log: Any = print, load_control: bool = True) -> tuple[Any, list[dict[str, float]]]:
     """A PPO model trained for ``steps`` environment steps, and its history (one record per
     rollout: steps, mean return, success, mean PDP of the episodes that ended in it)."""
     import torch
@@ -77,7 +78,7 @@ def train(lam: float, steps: int, seed: int, hyper: dict[str, Any], episode_s: f
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(threads)
-    venv: Any = DummyVecEnv([lambda: make_env(lam, episode_s) for _ in range(hyper["n_envs"])])
+    venv: Any = DummyVecEnv([lambda: make_env(lam, episode_s, load_control) for _ in range(hyper["n_envs"])])
     venv.seed(seed)
     if hyper["normalize_reward"]:
         # Rewards only: the exported network sees the raw features, as the Edge computes them.
@@ -223,9 +224,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import stable_baselines3
     import torch
 
-    from training.policy.cells import DEFAULT_FAMILY
     from training.policy.env import DEFAULT_LAMBDA, EPISODE_S, HEADROOM
-    from training.policy.evaluate import EVAL_SEED, lost_to_policy, policy_for, run_episodes
+    from training.policy.evaluate import (
+        EVAL_SEED,
+        idle_link,
+        lost_to_policy,
+        policy_for,
+        run_episodes,
+    )
+    from training.policy.work_cells import DEFAULT_FAMILY
 
     t_start = time.time()
     hyper = dict(HYPER)
@@ -238,7 +245,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     onnx_path = out / "policy.onnx"
     print(f"training PPO: lambda {lam}, {args.steps} steps, seed {args.seed}, {hyper['n_envs']} envs",
           flush=True)
-    model, history = train(lam, args.steps, args.seed, hyper, episode_s, args.threads)
+    load_control = args.train_bounds == "all"
+    model, history = train(lam, args.steps, args.seed, hyper, episode_s, args.threads, load_control=load_control)
     train_s = time.time() - t_start
     export_onnx(model, onnx_path)
     check = onnx_check(model, onnx_path, seed=args.seed + 7, n=500 if args.quick else 2000)
@@ -261,11 +269,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                    "cost": "PDP x price(load / capacity) x (1 - fraction of injected bytes discarded "
                            "late) x 0.05 s: seconds of PDP-1 camera traffic the loop puts on the air, "
                            f"free under {HEADROOM:.0%} of the cell's capacity, price 1 at capacity",
-                   "bounds": "the action's PDP bounded by the safety floor and the load control "
-                             "(PDP 1 with headroom, a cap past capacity), as at the Edge",
+                   "bounds": ("the action's PDP bounded by the safety floor and the load control "
+                              "(PDP 1 with headroom, a cap past capacity), as at the Edge" if load_control else
+                              "the action's PDP bounded by the safety floor only: the policy itself "
+                              "learns what the load costs (the Edge adds the load control at run time)"),
                    "perf": "+1 per part placed, -1 per part missed or dropped, when its task ends"},
         "data": {"environment": "training/policy/env.py (cosim5g/PickLoop-v0)",
-                 "cells": "training/policy/cells.py DEFAULT_FAMILY",
+                 "cells": "training/policy/work_cells.py DEFAULT_FAMILY",
                  "network_table": f"training/{TABLE} (benchmarks/policy_network_table.py)",
                  "estimator_error": "domain/data/frame_model.json", "episode_s": episode_s,
                  "training_seed": args.seed, "evaluation_seeds": f"{EVAL_SEED}..",
@@ -289,6 +299,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         res = run_episodes(pol.decide, episodes=episodes, lam=lam, episode_s=episode_s,
                            bounded=name != "none")
         evaluation[name] = res
+    # With the floor alone bounding it (the load control would override the policy's own choice),
+    # and with its load feature frozen at an idle cell's value: how much of its choice is the load's.
+    frozen = policy_for("learned", str(onnx_path))
+    for name, decide in (("learned, floor only", policy_for("learned", str(onnx_path)).decide),
+                         ("learned, floor only, load frozen", lambda st: frozen.decide(idle_link(st)))):
+        evaluation[name] = run_episodes(decide, episodes=episodes, lam=lam, episode_s=episode_s, bounded=False,
+                                        floor=True)
     for name, res in evaluation.items():
         if "none" in evaluation:
             res["lost_vs_none"] = lost_to_policy(res["rows"], evaluation["none"]["rows"])
@@ -322,6 +339,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-baselines", dest="baselines", action="store_false",
                     help="evaluate the learned policy only (not none and heuristic beside it)")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--train-bounds", choices=("all", "floor"), default="all",
+                    help="what bounds the action in training: the safety floor and the load control "
+                    "(all), or the floor only, so that the policy learns what the load costs (floor)")
     ap.add_argument("--out", type=Path, default=None,
                     help=f"output directory (default {DEFAULT_POLICY_MODEL.parent}, the shipped model)")
     return ap

@@ -3,8 +3,8 @@ federate's bulk histogram update counts as many ``observe`` calls."""
 
 from __future__ import annotations
 
-from netsim.cell import FlowQos, Packet, PacketOutcome
-from netsim.nr.cell import NrCell
+from netsim.nr.radio_cell import NrCell
+from netsim.radio_cell import FlowQos, Packet, PacketOutcome
 from netsim.standalone import camera_layout
 from scenario.nr import NrConfig
 

@@ -7,8 +7,8 @@ import hashlib
 import numpy as np
 import pytest
 
-from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, Packet
-from netsim.nr.cell import NrCell
+from netsim.nr.radio_cell import NrCell
+from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, Packet
 from netsim.standalone import camera_layout, run_uplink_cameras
 from scenario.nr import CALIBRATED_UL_CAPACITY_MBPS, NrConfig
 

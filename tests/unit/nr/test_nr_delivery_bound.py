@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netsim.cell import FlowQos, Packet
-from netsim.nr.cell import NrCell
+from netsim.nr.radio_cell import NrCell
+from netsim.radio_cell import FlowQos, Packet
 from scenario.nr import NrConfig
 
 GNB = (60.0, 30.0, 1.5)

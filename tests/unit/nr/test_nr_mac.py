@@ -6,9 +6,9 @@ from collections.abc import Iterable
 
 import pytest
 
-from netsim.cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
-from netsim.nr.cell import NrCell
+from netsim.nr.radio_cell import NrCell
 from netsim.nr.scheduler import MaxRate, ProportionalFair, RoundRobin, make_scheduler
+from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
 from scenario.nr import NrConfig
 
 GNB = (60.0, 30.0, 1.5)

@@ -33,21 +33,21 @@ from typing import Any
 import numpy as np
 
 from fabric.seeding import rng as named_rng
-from netsim.cell import (
-    LOSS_BUFFER,
-    LOSS_CHANNEL,
-    LOSS_DELAY_BUDGET,
-    Cell,
-    FlowQos,
-    Packet,
-    PacketOutcome,
-)
 from netsim.nr.buffers import PacketEntry, SenderBuffer
 from netsim.nr.channel import InfSlChannel
 from netsim.nr.harq import HarqEntity, TransportBlock
 from netsim.nr.link_adaptation import LinkAdaptation
 from netsim.nr.phy import PhyAbstraction
 from netsim.nr.scheduler import make_scheduler
+from netsim.radio_cell import (
+    LOSS_BUFFER,
+    LOSS_CHANNEL,
+    LOSS_DELAY_BUDGET,
+    FlowQos,
+    Packet,
+    PacketOutcome,
+    RadioCell,
+)
 from scenario.nr import NrConfig
 
 DEFAULT_QOS = FlowQos()
@@ -96,7 +96,7 @@ class _Grant:
         self.configured = configured
 
 
-class NrCell(Cell):
+class NrCell(RadioCell):
     """A single NR cell: one gNB, fixed UEs, uplink and downlink, stepped slot by slot.
 
     ``ue_positions_m`` maps UE id -> (x, y, z) in metres inside the hall of ``config``

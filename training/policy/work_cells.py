@@ -10,11 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenario.schema import CellConfig
+from scenario.schema import WorkCellConfig
 
 
 @dataclass(frozen=True)
-class CellFamily:
+class WorkCellFamily:
     """Ranges of the cells drawn (uniform in each)."""
 
     belt_speed_m_s: tuple[float, float] = (0.1, 0.5)
@@ -28,7 +28,7 @@ class CellFamily:
     # bottom quarter of the object periods (uniform draws put 1/16 of the cells there).
     corner_share: float = 0.25
 
-    def draw(self, rng: np.random.Generator) -> tuple[CellConfig, int]:
+    def draw(self, rng: np.random.Generator) -> tuple[WorkCellConfig, int]:
         """A cell and the number of loops in its radio cell."""
         speed_range, period_range = self.belt_speed_m_s, self.object_period_s
         if rng.random() < self.corner_share:
@@ -37,7 +37,7 @@ class CellFamily:
             lo, hi = period_range
             period_range = (lo, lo + (hi - lo) / 4)
         period = float(rng.uniform(*period_range))
-        cell = CellConfig(
+        cell = WorkCellConfig(
             belt_speed_m_s=round(float(rng.uniform(*speed_range)), 4),
             object_period_s=round(period, 3),
             object_jitter_s=round(period * float(rng.uniform(*self.jitter_fraction)), 3),
@@ -58,5 +58,5 @@ class CellFamily:
                             "dense corner (top quarter of belt speeds x bottom quarter of periods)"}
 
 
-DEFAULT_FAMILY = CellFamily()
+DEFAULT_FAMILY = WorkCellFamily()
 

@@ -1,6 +1,6 @@
 """The interface every radio cell model implements, and the packet records it produces.
 
-The netsim federate owns the clock and the wire format; a ``Cell`` only sees IP packets entering
+The netsim federate owns the clock and the wire format; a ``RadioCell`` only sees IP packets entering
 sender buffers and is stepped one slot at a time. Implementations: ``netsim.simple.SimpleCell``
 (shared-capacity queues) and the NR system-level model.
 """
@@ -77,7 +77,7 @@ class FlowQos:
     urgency: float = 1.0
 
 
-class Cell(ABC):
+class RadioCell(ABC):
     """A radio cell stepped slot by slot."""
 
     slot_us: int
