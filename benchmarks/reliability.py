@@ -62,7 +62,8 @@ def processes_of(marker: str) -> list[tuple[int, str]]:
 def docker_leftovers(run_ids: list[str]) -> list[str]:
     """Containers, networks and volumes labelled with one of ``run_ids``."""
     try:
-        from coordinator.runtime_docker import LABEL_RUN, docker_client
+        from coordinator.docker_runs import LABEL_RUN
+        from coordinator.runtime_docker import docker_client
         client = docker_client()
     except Exception:
         return []
@@ -169,7 +170,8 @@ def _federate_pid(run_id: str, name: str) -> int | None:
 
 
 def _container(run_id: str, name: str) -> Any:
-    from coordinator.runtime_docker import LABEL_FEDERATE, LABEL_RUN, docker_client
+    from coordinator.docker_runs import LABEL_FEDERATE, LABEL_RUN
+    from coordinator.runtime_docker import docker_client
     client = docker_client()
     found = client.containers.list(filters={"label": [f"{LABEL_RUN}={run_id}", f"{LABEL_FEDERATE}={name}"]})
     return found[0] if found else None

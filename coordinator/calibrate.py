@@ -127,7 +127,7 @@ class CgroupRunner(ProcessRunner):
     def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:
         if cpus is None:
             return self._spawn(None, jobs, None)
-        from coordinator.runtime_docker import CFS_PERIOD_US, cfs_quota_us
+        from coordinator.docker_limits import CFS_PERIOD_US, cfs_quota_us
 
         self.count += 1
         group = self.parent / f"cosim5g-calibrate-{os.getpid()}-{self.count}"
@@ -183,7 +183,7 @@ class DockerRunner:
                                  "use --runtime process (or cgroup)") from None
 
     def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:
-        from coordinator.runtime_docker import cgroup_limits
+        from coordinator.docker_limits import cgroup_limits
 
         env = {"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl", "HOME": "/tmp"}
         mounts = {}

@@ -125,7 +125,8 @@ def execute_run(
     """Run ``scenario`` to its end; never raises for a failing run (see ``RunResult.status``)."""
     if launcher is None:
         if scenario.runtime == "docker":
-            from coordinator.runtime_docker import DockerLauncher, docker_client, reap_dead_runs
+            from coordinator.docker_runs import reap_dead_runs
+            from coordinator.runtime_docker import DockerLauncher, docker_client
             client = docker_client()
             reap_dead_runs(client)  # leftovers of runs whose coordinator died
             launcher = DockerLauncher(client)

@@ -10,7 +10,7 @@
   period keeps a throttled job's wall time close to cpu_time / cpus, see docs/architecture.md sec. 5)
   and quota = cpus x period; a ``cpu``- or ``model``-timed node gets whole cores, ceil(cpus),
   since its durations come from its jobs' CPU time and throttling would only inflate that
-  (``cpu_limit_cores``); memory limit with no swap;
+  (``coordinator.docker_limits``); memory limit with no swap;
 - no privileges, every capability dropped, no-new-privileges, read-only root with a tmpfs /tmp,
   and one bind mount: the run directory, read-write at the same path as on the coordinator's
   side so every path in a message or a config means the same file everywhere.
@@ -29,30 +29,40 @@ How federates reach the coordinator's zenoh router (docs/docker.md has the pictu
   router listens on ``tcp/0.0.0.0:<port>`` inside its container; federates connect to
   ``tcp/coordinator:<port>``.
 
-``reap_dead_runs(client)`` removes the containers and networks of runs whose coordinator is gone;
-call it when a coordinator starts. ``container_cpu_throttling(container)`` reads a container's
-CFS counters from the host side (docker stats API, cgroup v1 and v2 alike).
+Labels, run owners and the reaper of dead runs are ``coordinator.docker_runs``; cgroup limits and
+the CFS counters read back are ``coordinator.docker_limits``.
 """
 
 from __future__ import annotations
 
 import fcntl
 import logging
-import math
 import os
 import re
 import signal
 import socket
 import struct
 import time
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import docker
 from docker.errors import APIError, DockerException, ImageNotFound, NotFound
 
+from coordinator.docker_limits import cgroup_limits
+from coordinator.docker_runs import (
+    ATTACH_RUN_NETWORKS,
+    LABEL_ALIAS,
+    LABEL_ATTACH,
+    LABEL_FEDERATE,
+    LABEL_METRICS_PORT,
+    LABEL_OWNER,
+    LABEL_ROLE,
+    LABEL_RUN,
+    owner_id,
+    remove_run_objects,
+)
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from fabric.settings import env_name, settings
 
@@ -60,21 +70,8 @@ log = logging.getLogger(__name__)
 
 RUNTIME_IMAGE = "cosim5g/runtime:latest"
 
-LABEL_RUN = "cosim5g.run_id"
-LABEL_FEDERATE = "cosim5g.federate"
-LABEL_ROLE = "cosim5g.role"
-LABEL_OWNER = "cosim5g.owner"
-LABEL_METRICS_PORT = "cosim5g.metrics_port"
-# Platform containers (compose coordinator, Prometheus) that must reach every run's federates.
-LABEL_ATTACH = "cosim5g.attach"
-ATTACH_RUN_NETWORKS = "run-networks"
-LABEL_ALIAS = "cosim5g.alias"
-
-CFS_PERIOD_US = 10_000
 # A node using this share of its memory limit when it fails is taken to have run out of memory.
 MEMORY_FULL = 0.95
-# The kernel refuses a CFS quota below 1 ms: at a 10 ms period the smallest node is 0.1 cpus.
-CFS_MIN_QUOTA_US = 1_000
 # The image's unprivileged user (images/runtime.Dockerfile).
 IMAGE_UID = 10001
 IMAGE_GID = 10001
@@ -101,192 +98,6 @@ def docker_client(timeout_s: int = 30) -> Any:
             f"Docker daemon not reachable at {where}: {e}. Start it, or use the `process` runtime."
         ) from e
     return client
-
-
-def cfs_quota_us(cpus: float, period_us: int = CFS_PERIOD_US) -> int:
-    """The CFS quota (us per ``period_us``) that gives ``cpus`` host cores."""
-    if cpus <= 0:
-        raise ValueError(f"cpus must be > 0, got {cpus}")
-    quota = int(round(cpus * period_us))
-    if quota < CFS_MIN_QUOTA_US:
-        raise ValueError(
-            f"cpus={cpus} gives a CFS quota of {quota} us per {period_us} us period, below the "
-            f"kernel's minimum of {CFS_MIN_QUOTA_US} us: use cpus >= "
-            f"{CFS_MIN_QUOTA_US / period_us:g}"
-        )
-    return quota
-
-
-def cpu_limit_cores(limits: NodeLimits) -> float | None:
-    """The CPU the container may use, in host cores (None: unlimited).
-
-    A ``wall``-timed node is its quota: cpus x period, so a job's wall time is the emulation.
-    A ``cpu``- or ``model``-timed node takes its durations from the job's own CPU time (or a
-    draw), so a fractional quota would only stretch the wall clock -- and cost CPU time: a job
-    throttled in mid-run resumes on a core that slept (caches and branch predictors cold, the
-    core clocked down), measured on this platform's 2-core VM as 1.18-1.42x the CPU time of the
-    same loop on a busy core (``make calibrate``, idle-wake penalty), which is exactly the error
-    ``cpu`` timing is there to avoid. Such a node gets whole cores instead: ceil(cpus), which
-    still bounds how many threads it runs in parallel."""
-    if limits.cpus is None:
-        return None
-    if limits.timing == "wall":
-        return limits.cpus
-    return float(math.ceil(limits.cpus))
-
-
-def cgroup_limits(limits: NodeLimits) -> dict[str, Any]:
-    """docker SDK ``containers.run`` keyword arguments for a node profile."""
-    kw: dict[str, Any] = {}
-    cores = cpu_limit_cores(limits)
-    if cores is not None:
-        kw["cpu_period"] = CFS_PERIOD_US
-        kw["cpu_quota"] = cfs_quota_us(cores)
-    if limits.mem_mb is not None:
-        if limits.mem_mb < 6:
-            raise ValueError(f"mem_mb={limits.mem_mb}: docker needs at least 6 MiB")
-        kw["mem_limit"] = f"{limits.mem_mb}m"
-        # Same value: no swap on top of the limit, so an over-budget node is OOM-killed (and
-        # reported as such) instead of silently slowing down.
-        kw["memswap_limit"] = f"{limits.mem_mb}m"
-    return kw
-
-
-# ---------------------------------------------------------------------------------------------
-# Owner identity: which coordinator process started a run's containers (for the reaper)
-# ---------------------------------------------------------------------------------------------
-
-def _proc_start_ticks(pid: int) -> str | None:
-    """The start time of ``pid`` in clock ticks since boot (tells a reused pid apart)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    # Field 22; the command name (field 2) may hold spaces, so split after its closing ')'.
-    return stat.rsplit(")", 1)[1].split()[19]
-
-
-def owner_id() -> str:
-    """``<hostname>/<pid>/<start ticks>`` of this process."""
-    pid = os.getpid()
-    return f"{socket.gethostname()}/{pid}/{_proc_start_ticks(pid) or '?'}"
-
-
-def _owner_alive(owner: str, running_container_ids: Iterable[str]) -> bool:
-    """Whether the coordinator that labelled a run with ``owner`` is still alive.
-
-    Same host namespace (same hostname): its pid must exist with the same start time. Another
-    hostname is usually a coordinator in a container (a container's hostname is its short id):
-    alive while that container runs. Anything else cannot be checked from here and counts as
-    dead: one coordinator per Docker daemon is the supported setup.
-    """
-    try:
-        host, pid_s, ticks = owner.split("/")
-        pid = int(pid_s)
-    except ValueError:
-        return False
-    if host == socket.gethostname():
-        return _proc_start_ticks(pid) == ticks
-    return any(cid.startswith(host) for cid in running_container_ids)
-
-
-def reap_dead_runs(client: Any, alive_run_ids: Iterable[str] = ()) -> list[str]:
-    """Remove the containers and networks of runs that no live coordinator owns.
-
-    A run is alive if its id is in ``alive_run_ids`` or the coordinator process that started it
-    is still alive (``cosim5g.owner`` label). Call at coordinator start-up, when no run of this
-    coordinator exists yet. Returns the reaped run ids.
-
-    A coordinator that dies does not leave its federates running until then: each federate
-    leaves within seconds of the coordinator's liveliness token vanishing (``services.main``), so
-    what is left of a dead run is exited containers (kept for their logs and exit codes) and the
-    run network, running or not alike removed here.
-    """
-    alive = set(alive_run_ids)
-    containers = client.containers.list(all=True, filters={"label": LABEL_RUN})
-    networks = client.networks.list(filters={"label": LABEL_RUN})
-    running_ids = [c.id for c in client.containers.list()]
-    owners: dict[str, set[str]] = {}
-    for c in containers:
-        owners.setdefault(c.labels[LABEL_RUN], set()).add(c.labels.get(LABEL_OWNER, ""))
-    for n in networks:
-        owners.setdefault(n.attrs["Labels"][LABEL_RUN], set()).add(
-            n.attrs["Labels"].get(LABEL_OWNER, ""))
-    dead = sorted(
-        run for run, who in owners.items()
-        if run not in alive and not any(_owner_alive(o, running_ids) for o in who if o)
-    )
-    for run in dead:
-        log.warning("reaping leftovers of dead run %s", run)
-        _remove_run_objects(client, run)
-    return dead
-
-
-def _remove_run_objects(client: Any, run_id: str) -> list[str]:
-    """Force-remove every container, network and volume labelled with ``run_id``; returns errors."""
-    errors: list[str] = []
-    selector = {"label": f"{LABEL_RUN}={run_id}"}
-    for c in client.containers.list(all=True, filters=selector):
-        try:
-            c.remove(force=True, v=True)
-        except NotFound:
-            pass
-        except APIError as e:
-            errors.append(f"container {c.name}: {e.explanation or e}")
-    for n in client.networks.list(filters=selector):
-        try:
-            n.reload()
-            # Platform containers attached for the run's lifetime would block the removal.
-            for cid in (n.attrs.get("Containers") or {}):
-                try:
-                    n.disconnect(cid, force=True)
-                except (NotFound, APIError):
-                    pass
-            n.remove()
-        except NotFound:
-            pass
-        except APIError as e:
-            errors.append(f"network {n.name}: {e.explanation or e}")
-    # We create none, but a federate image with a VOLUME would leave anonymous ones behind.
-    for v in client.volumes.list(filters=selector):
-        try:
-            v.remove(force=True)
-        except NotFound:
-            pass
-        except APIError as e:
-            errors.append(f"volume {v.name}: {e.explanation or e}")
-    return errors
-
-
-# ---------------------------------------------------------------------------------------------
-# Host-side CPU accounting of a container
-# ---------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class CpuThrottling:
-    """CFS counters of a container: usage and throttling since it started."""
-
-    usage_ns: int  # CPU time consumed by every task of the container
-    periods: int  # CFS periods in which the container was runnable
-    throttled_periods: int  # periods in which it hit its quota
-    throttled_ns: int  # total time its run queues spent throttled
-
-
-def container_cpu_throttling(container: Any) -> CpuThrottling:
-    """Read a container's CFS counters through the daemon (``docker stats``, one shot).
-
-    Works from the host or from the compose coordinator alike and under cgroup v1 and v2: the
-    daemon reads cpu.stat (v1: ``throttled_time`` ns, v2: ``throttled_usec``) and reports ns.
-    """
-    stats = container.stats(stream=False, one_shot=True)
-    cpu = stats.get("cpu_stats") or {}
-    thr = cpu.get("throttling_data") or {}
-    return CpuThrottling(
-        usage_ns=int((cpu.get("cpu_usage") or {}).get("total_usage", 0)),
-        periods=int(thr.get("periods", 0)),
-        throttled_periods=int(thr.get("throttled_periods", 0)),
-        throttled_ns=int(thr.get("throttled_time", 0)),
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -600,7 +411,7 @@ class DockerLauncher(Launcher):
         if self._stopped:
             # Second call: the containers are gone; only sweep by label once more, in case.
             if self.run_id is not None:
-                for err in _remove_run_objects(self.client, self.run_id):
+                for err in remove_run_objects(self.client, self.run_id):
                     log.error("run %s: could not remove %s", self.run_id, err)
             return
         self._last_poll = -float("inf")
@@ -644,7 +455,7 @@ class DockerLauncher(Launcher):
             self._attached.clear()
         if self.run_id is not None:
             # By label as well: catches anything created before a failure recorded it.
-            errors += _remove_run_objects(self.client, self.run_id)
+            errors += remove_run_objects(self.client, self.run_id)
         for err in errors:
             log.error("run %s: could not remove %s", self.run_id, err)
 

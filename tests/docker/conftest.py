@@ -12,7 +12,8 @@ import pytest
 
 docker = pytest.importorskip("docker", reason="the docker SDK is not installed (pip install .[api])")
 
-from coordinator.runtime_docker import LABEL_RUN, RUNTIME_IMAGE  # noqa: E402
+from coordinator.docker_runs import LABEL_RUN  # noqa: E402
+from coordinator.runtime_docker import RUNTIME_IMAGE  # noqa: E402
 
 
 def _connect() -> tuple[Any, str]:

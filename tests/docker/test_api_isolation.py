@@ -19,7 +19,8 @@ from typing import Any
 import pytest
 import yaml
 
-from coordinator.runtime_docker import LABEL_RUN, RUNTIME_IMAGE
+from coordinator.docker_runs import LABEL_RUN
+from coordinator.runtime_docker import RUNTIME_IMAGE
 
 pytestmark = pytest.mark.docker
 COMPOSE = Path(__file__).parents[2] / "docker-compose.yml"

@@ -18,15 +18,11 @@ from typing import Any
 
 import pytest
 
+from coordinator.docker_limits import container_cpu_throttling
+from coordinator.docker_runs import LABEL_RUN, reap_dead_runs
 from coordinator.launcher import FederateSpec, NodeLimits
 from coordinator.run import free_port
-from coordinator.runtime_docker import (
-    LABEL_RUN,
-    DockerLauncher,
-    DockerRuntimeError,
-    container_cpu_throttling,
-    reap_dead_runs,
-)
+from coordinator.runtime_docker import DockerLauncher, DockerRuntimeError
 
 pytestmark = pytest.mark.docker
 

@@ -11,8 +11,9 @@ from typing import Any
 import pytest
 
 from coordinator.conductor import Progress
+from coordinator.docker_runs import LABEL_RUN
 from coordinator.run import execute_run
-from coordinator.runtime_docker import LABEL_RUN, DockerLauncher
+from coordinator.runtime_docker import DockerLauncher
 from scenario.schema import load_scenario
 
 pytestmark = pytest.mark.docker

@@ -7,14 +7,10 @@ import socket
 
 import pytest
 
+from coordinator.docker_limits import cfs_quota_us, cgroup_limits
+from coordinator.docker_runs import _owner_alive, owner_id
 from coordinator.launcher import NodeLimits
-from coordinator.runtime_docker import (
-    _exit_reason,
-    _owner_alive,
-    cfs_quota_us,
-    cgroup_limits,
-    owner_id,
-)
+from coordinator.runtime_docker import _exit_reason
 
 
 def test_cgroup_limits_of_a_wall_timed_node_are_its_quota() -> None:
