@@ -59,15 +59,18 @@ class Guard:
         await self.app(scope, _replay(body, receive), send)
 
     def _authorised(self, scope: Scope, headers: dict[str, str]) -> bool:
-        given = None
+        """Whether the bearer header, the cookie or (on /login only, which checks it again itself)
+        the query's token is the token: a stale cookie does not stand in the way of a login."""
+        given = []
         scheme, _, credentials = headers.get("authorization", "").partition(" ")
         if scheme.lower() == "bearer" and credentials:
-            given = credentials.strip()
-        elif (cookie := _cookie(headers.get("cookie", ""), COOKIE)) is not None:
-            given = cookie
-        elif scope["path"] == "/login":  # the login route checks this token again itself
-            given = _query_value(scope.get("query_string", b"").decode("latin-1"), "token")
-        return given is not None and token_matches(given, self.token)
+            given.append(credentials.strip())
+        if (cookie := _cookie(headers.get("cookie", ""), COOKIE)) is not None:
+            given.append(cookie)
+        if scope["path"] == "/login" and (query := _query_value(
+                scope.get("query_string", b"").decode("latin-1"), "token")) is not None:
+            given.append(query)
+        return any(token_matches(g, self.token) for g in given)
 
     async def _body(self, receive: Receive) -> bytes | None:
         """The whole body, or None once it passes the limit (a chunked body declares no length)."""

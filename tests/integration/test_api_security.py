@@ -207,6 +207,11 @@ def test_a_browser_logs_in_once_and_then_uses_a_cookie(client: Client) -> None:
         assert r.status_code == 303 and r.headers["location"] == landing
     page = client.get("/", headers={"accept": "text/html"})
     assert page.status_code == 200 and "<html" in page.text
+    # A stale cookie (a token since replaced) does not keep a browser from logging in again.
+    client.cookie = "cosim5g_token=stale-token-0123456789abcdef"
+    assert client.get("/runs").status_code == 401
+    assert client.get("/login", params={"token": TOKEN}).status_code == 303
+    assert client.get("/runs").status_code == 200
     client.cookie = None
     assert client.get("/", headers={"accept": "text/html"}).status_code == 401
 
