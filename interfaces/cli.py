@@ -263,6 +263,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         token_file,
     )
 
+    if args.sweep_jobs is not None:
+        print("cosim5g serve: --sweep-jobs is now --slots (runs and sweep points share them)", file=sys.stderr)
+        args.slots = args.slots or args.sweep_jobs
     try:
         limits = settings(**{name: getattr(args, name) for name in LIMITS})
     except ValueError as exc:
@@ -381,6 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default $COSIM5G_MAX_BODY_BYTES or 1000000)")
     s.add_argument("--slots", type=int, help="runs and sweep points simulated at once, shared by runs and sweeps "
                    "(default $COSIM5G_SLOTS or half the host's cores, at least 1)")
+    # Sweeps' points and runs now share --slots; the old flag still works, with a word.
+    s.add_argument("--sweep-jobs", type=int, dest="sweep_jobs", help=argparse.SUPPRESS)
     s.set_defaults(fn=cmd_serve)
     c = sub.add_parser("submit", help="start a run (or a sweep) through the coordinator's REST API")
     c.add_argument("scenario", nargs="?", help="name of a scenario in the coordinator's configs/scenarios/")
