@@ -1,26 +1,9 @@
-"""Compute emulation (docs/architecture.md sec. 5): a node runs its jobs for real, one at a time per emulated core,
-and each job's emulated duration comes from the node's timing mode.
-
-- ``cpu`` (default): the job's own CPU time, in reference-core time, over the node's ``cpus``
-  (divided by the parallelism the job really used, capped by the node's cores). A job's CPU time
-  is the CPU clock of the thread that runs it plus that of the library worker threads (OpenCV,
-  ONNX Runtime, BLAS pools) it used -- never the zenoh or other runtime threads of the process,
-  so what else the process or the host runs does not count;
-- ``wall``: the job's wall-clock duration inside the node's CPU-limited cgroup, in
-  reference-core time. Refused where no matching CPU quota is visible, and for jobs shorter than
-  ``WALL_MIN_PERIODS`` CFS periods (a short job finishes inside one period's quota and is never
-  throttled; docs/compute.md);
-- ``model``: a seeded draw from the configured distribution -- deterministic and host-independent.
-
-Reference-core time: ``cpus`` are cores of the reference core (``fabric.host_speed``).
-Host CPU time is multiplied by ``scale = host score / reference score``, so one scenario gives
-the same compute latencies on a faster or slower host. The node also probes its speed during the
-run and reports it (``speed_summary``), flagged when it drifted more than ``DRIFT_LIMIT`` from the
-score its durations were scaled by.
-
-A job arriving at simulated time t starts at max(t, earliest free core) and its outputs are due
-at start + duration. Per job we keep queueing delay, emulated duration, CPU time, wall time and,
-where the cgroup exposes it, the CPU time the kernel throttled the node for.
+"""Compute emulation (docs/architecture.md sec. 5, docs/compute.md): a node runs its jobs for real,
+one at a time per emulated core; a job arriving at t starts at max(t, earliest free core) and its
+outputs are due at start + its emulated duration, which the node's timing mode gives: ``cpu``
+(the job's CPU time, its own and its library threads', in reference-core time over ``cpus``),
+``wall`` (its wall time inside the node's CFS quota) or ``model`` (a seeded draw). Each job's
+queueing delay, duration, CPU and wall time are recorded.
 """
 
 from __future__ import annotations

@@ -1,26 +1,10 @@
-"""The federate base: the conservative window protocol of docs/architecture.md sec. 3, shared by every federate.
+"""The federate base: every federate's side of the window protocol (docs/architecture.md sec. 3).
 
-A federate receives ``advance(t_end, expected_in)``, waits until it holds every data message sent
-to it so far (count-based barrier), then processes every input and internal event with time
-< t_end in (t_us, source, seq) order -- never arrival order -- and replies ``done`` with the
-cumulative count of messages it sent per destination and its next event time. Every message it
-sends must be delivered at or after the end of the current window; breaking that is a bug and
-fails the federate at once. Each processed and sent event feeds the federate's trace hash.
-
-Several messages for one destination and delivery time may travel as one ``bundle``
-(``send_bundle``, e.g. the packets a cell delivers in one slot); the receiver handles its items one
-by one, in order, exactly as if they had been sent singly.
-
-A message the federate cannot handle (unknown kind, missing field, undecodable bytes) fails it with
-an error naming the federate and the message kind, reported to the coordinator in ``done``.
-
-Records stream to disk while the run goes (``fabric.tables``): a federate appends rows
-to its tables, which are written in bounded batches, at the latest every ``FLUSH_EVERY_US`` of
-simulated time, and closed when it stops or fails.
-
-A federate never outlives its coordinator: it watches the coordinator's liveliness token and
-leaves (after writing its records) when the token vanishes, or when none appeared within
-``COORDINATOR_WAIT_S`` of connecting.
+It waits for the messages counted in ``advance``, processes inputs and internal events in
+(t_us, source, seq) order up to the window's end, sends (a message inside the window is a
+``CausalityError``), replies ``done``, streams its records (``fabric.tables``), feeds its trace
+hash, and leaves when its coordinator's liveliness token is gone. A message it cannot handle
+fails it, naming the federate and the message kind.
 """
 
 from __future__ import annotations

@@ -1,32 +1,10 @@
-"""Several federates served by one process as one participant of the window protocol.
+"""Several federates served by one process as one participant of the window protocol (the
+``core`` group; docs/architecture.md sec. 3, "Groups" and "Long windows").
 
-A ``FederateGroup`` hosts member federates (e.g. physics, netsim and the abstract loops, which
-exchange messages every window and have no compute node to emulate) and merges their event
-queues: in each window it processes, across all members, the earliest event first. A message
-from one member to another is handed over in the process -- the message object itself (it is
-encoded for the sender's trace hash, as on the wire, but not decoded), with no bus, no barrier and
-no other process to wake -- and needs only to arrive after the end of the scenario's window
-(``window_us``) in which it was sent, as between separate federates.
-So each member processes exactly the inputs and events it would process on its own, in the same
-(t_us, source, sequence) order, and sends the same messages.
-
-What changes is the protocol around them. The conductor sees one participant (the group's
-name), whose ``done`` counts only the messages sent outside the group. It also reports the
-group's horizon: the earliest time at which a member may send something outside the group (each
-member knows its own: ``Federate.external_horizon_us``). While the group is the only participant
-with anything to do, the conductor may give it a window up to that horizon, longer than
-``window_us``: the conductor and the group then meet once per long window instead of once per
-slot, with the same result. With no detailed loop the horizon never comes.
-
-After every event the group offers ``work_ahead`` to the members that work ahead, with the time
-until which no message can reach them: the end of the window for messages from outside, and for
-each other member the end of the base window in which it may next send on the member's planes
-(``Federate.next_send_us``; by default the current base window). Work their later events would
-begin with may then run in a background thread (physics steps the world there while the other
-members' events run: ``mj_step`` releases the GIL).
-
-Each member keeps its own records, trace hash and ``stopped`` report; a member that fails fails
-the group's window with the member's name.
+Members' events are merged, earliest first; a message between members is handed over in
+memory, timed as on the bus. The conductor sees one participant, whose ``done`` counts only
+messages leaving the group and carries the group's horizon; members may work ahead in a
+background thread (``work_ahead``). Each member keeps its own records, trace and report.
 """
 
 from __future__ import annotations
