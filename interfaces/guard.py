@@ -2,7 +2,8 @@
 
 In this order, each refusal costing no more than reading the request's head: a body declared
 larger than the limit (413), a missing or wrong token (401, also for paths no route serves),
-then the body read up to the limit (413 past it) and handed on. Every answer carries
+then the body read up to the limit (413 past it), refused if it nests deeper than
+``MAX_JSON_DEPTH`` (422), and handed on. Every answer carries
 ``X-Content-Type-Options: nosniff``; the access log never shows a token given in a query.
 """
 
@@ -27,6 +28,11 @@ COOKIE = "cosim5g_token"
 PUBLIC_PATHS = frozenset({"/healthz"})
 # A token in a query (``/login?token=...``): shown as *** in the access log.
 _QUERY_TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")
+# The deepest JSON a request may nest (a scenario or a sweep spec needs under 10 levels); deeper
+# is refused before any parser recurses into it.
+MAX_JSON_DEPTH = 32
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
+_NOT_BRACKETS = bytes(b for b in range(256) if b not in b"[]{}")
 
 
 class Guard:
@@ -55,6 +61,11 @@ class Guard:
         body = await self._body(receive)
         if body is None:
             await self._too_large(send)
+            return
+        if json_depth(body) > MAX_JSON_DEPTH:
+            self.on_refused("json_depth")
+            await _answer(send, 422, f"the request body nests deeper than this coordinator reads: "
+                                     f"at most {MAX_JSON_DEPTH} levels of arrays and objects")
             return
         await self.app(scope, _replay(body, receive), send)
 
@@ -92,6 +103,17 @@ class Guard:
         self.on_refused("body_size")
         await _answer(send, 413, f"the request body is larger than this coordinator accepts: max_body_bytes "
                                  f"(--max-body-bytes, COSIM5G_MAX_BODY_BYTES) = {self.max_body_bytes} bytes")
+
+
+def json_depth(body: bytes) -> int:
+    """How deep ``body``'s arrays and objects nest, counted without parsing it (strings, where a
+    bracket means nothing, are left out first)."""
+    brackets = _JSON_STRING.sub(b"", body).translate(None, _NOT_BRACKETS)
+    depth = deepest = 0
+    for c in brackets:
+        depth += 1 if c in b"[{" else -1
+        deepest = max(deepest, depth)
+    return deepest
 
 
 def _headers(scope: Scope) -> dict[str, str]:
