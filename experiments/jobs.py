@@ -45,8 +45,8 @@ class JobService:
 
     ``execute`` runs one run in this process (default ``execute_run``); ``make_executor(slots)``
     makes a sweep's executor (default: a local one whose points take slots). ``on_progress(run
-    id, sim s, real-time factor)``, ``on_ended(kind, state)`` and ``on_point_done(state)`` let
-    the interface count what happens."""
+    id, sim s, real-time factor)``, ``on_admitted(kind)``, ``on_ended(kind, state)`` and
+    ``on_point_done(state)`` let the interface count what happens."""
 
     def __init__(self, db_path: Path, runs_root: Path, sweeps_root: Path, scenarios_dir: Path, *,
                  slots: int = 1, max_queued: int = 32, execute: Callable[..., RunResult] = execute_run,
@@ -58,6 +58,7 @@ class JobService:
         self.make_executor = make_executor or (lambda s: LocalExecutor(s.size, slots=s))
         self.on_progress: Callable[[str, float, float], None] = lambda job_id, sim_s, rtf: None
         self.on_ended: Callable[[JobKind, str], None] = lambda kind, state: None
+        self.on_admitted: Callable[[JobKind], None] = lambda kind: None
         self.on_point_done: Callable[[str], None] = lambda state: None
         self.store = JobStore(db_path)
         self._admit = threading.Lock()  # the room check and the admission, as one step
@@ -91,6 +92,7 @@ class JobService:
             run_id = new_run_id(sc)
             self.store.add(run_id, JobKind.RUN, sc.name, sc.model_dump(mode="json"), self.runs_root / run_id)
             self._start(run_id, lambda job_id, cancel: self._run_job(job_id, sc, cancel))
+        self.on_admitted(JobKind.RUN)
         return run_id
 
     def submit_sweep(self, spec: SweepSpec) -> tuple[str, int]:
@@ -101,6 +103,7 @@ class JobService:
             sid = sweep.sweep_id
             self.store.add(sid, JobKind.SWEEP, spec.name, spec.model_dump(mode="json"), sweep.dir.path)
             self._start(sid, self._sweep_job)
+        self.on_admitted(JobKind.SWEEP)
         return sid, len(self.points(sid))
 
     def cancel(self, job_id: str) -> bool:

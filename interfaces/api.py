@@ -214,17 +214,18 @@ def count_jobs(jobs: JobService) -> None:
         count_sweeps(jobs)
 
     jobs.on_progress, jobs.on_ended = progress, ended
+    jobs.on_admitted = lambda kind: count_sweeps(jobs)
     jobs.on_point_done = lambda state: SWEEP_POINTS.labels(state).inc()
     for state in (RunState.COMPLETED, RunState.FAILED, RunState.TIMED_OUT):
         SWEEP_POINTS.labels(state)
     for reason in ("token", "body_size", "json_depth", "max_queued"):
         REFUSED.labels(reason)
-    ACTIVE_RUNS.set(len(jobs.store.list(JobKind.RUN, ACTIVE)))
     count_sweeps(jobs)
 
 
 def count_sweeps(jobs: JobService) -> None:
-    """The gauges of work waiting: active runs and sweeps, and points left."""
+    """The gauges of work waiting: active runs and sweeps, and points left (read from the store:
+    called when a job is admitted or ends, and when sweeps are listed)."""
     active = jobs.store.list(JobKind.SWEEP, ACTIVE)
     SWEEPS_ACTIVE.set(len(active))
     ACTIVE_RUNS.set(len(jobs.store.list(JobKind.RUN, ACTIVE)))

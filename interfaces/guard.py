@@ -14,6 +14,7 @@ import logging
 import re
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
+from urllib.parse import parse_qs
 
 from interfaces.auth import token_matches
 
@@ -129,8 +130,6 @@ def _cookie(header: str, name: str) -> str | None:
 
 
 def _query_value(query: str, name: str) -> str | None:
-    from urllib.parse import parse_qs
-
     values = parse_qs(query, max_num_fields=64).get(name)
     return values[0] if values else None
 

@@ -109,7 +109,7 @@ def sweeps_router(jobs: JobService, sweeps_dir: Path, scenarios_dir: Path,
                   on_change: Callable[[], None] = lambda: None) -> APIRouter:
     """``check(spec)``: (field, message) of each limit a point passes (422); ``max_points``
     (limit, setting) refuses a spec with more points before any point is validated;
-    ``on_change()`` after a sweep is accepted or listed (the metrics)."""
+    ``on_change()`` when sweeps are listed (the metrics; admission counts itself)."""
     router = APIRouter(tags=["sweeps"])
 
     def detail(sweep_id: str) -> dict[str, Any]:
@@ -129,7 +129,6 @@ def sweeps_router(jobs: JobService, sweeps_dir: Path, scenarios_dir: Path,
         if errors:
             raise SweepError(errors)
         sweep_id, points = jobs.submit_sweep(spec)
-        on_change()
         return SweepAccepted(sweep_id=sweep_id, state=RunState.PENDING, points=points)
 
     @router.get("/sweeps")
