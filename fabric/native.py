@@ -1,16 +1,8 @@
-"""Compiled builds of the hot pure-Python modules (mypyc): built by ``make native``, used when fresh.
+"""Compiled builds of the hot pure-Python modules (mypyc): built by ``make native``, used if fresh.
 
-The Python sources stay the only truth. mypyc compiles the same typed files to C extension
-modules, which run the NR cell about twice as fast and compute the same numbers (the same
-operations on the same C doubles and Python ints). A build lives outside the source tree, in
-``build/native/<cache tag>/`` (``COSIM5G_NATIVE_DIR`` elsewhere, e.g. in the runtime image), with
-a stamp of the sources it was built from. A package that calls ``use_native`` at import puts the
-build first on its ``__path__`` only while that stamp matches its sources: an edited source runs
-as pure Python (said once in the log) until the next ``make native``, never as a stale build.
-``COSIM5G_PURE_PYTHON=1`` turns the builds off. The same build holds the few shared libraries
-built from C (``LIBRARIES``, loaded with ``library``) for code that must run without the GIL.
-
-    python -m fabric.native build | status
+The sources stay the only truth (README.md, "Using it"): a package that calls ``use_native`` loads
+the build only while its stamp matches the sources; ``library`` loads the C libraries of
+``LIBRARIES``. ``python tools/native.py build`` builds, ``status`` says what loads.
 """
 
 from __future__ import annotations
@@ -43,10 +35,17 @@ ROOT = Path(__file__).resolve().parents[1]
 MODULES = (
     "netsim/radio_cell.py",
     "netsim/simple.py",
+    "netsim/nr/arrivals.py",
     "netsim/nr/buffers.py",
+    "netsim/nr/counters.py",
+    "netsim/nr/csi.py",
+    "netsim/nr/downlink.py",
+    "netsim/nr/draws.py",
+    "netsim/nr/outcomes.py",
     "netsim/nr/radio_cell.py",
     "netsim/nr/channel.py",
     "netsim/nr/harq.py",
+    "netsim/nr/uplink.py",
     "netsim/nr/link_adaptation.py",
     "netsim/nr/phy.py",
     "netsim/nr/scheduler.py",
@@ -64,14 +63,15 @@ DIR_ENV = env_name("native_dir")
 
 
 def native_dir() -> Path:
-    """Where the build for this interpreter lives."""
+    """Where the build for this interpreter lives: ``COSIM5G_NATIVE_DIR``, else
+    ``build/native/<cache tag>`` beside the packages."""
     return settings().native_dir or ROOT / "build" / "native" / sys.implementation.cache_tag
 
 
 @lru_cache(maxsize=1)
 def sources_digest() -> str:
-    """sha256 over the names and contents of the compiled modules and those they import, and the
-    interpreter's cache tag."""
+    """The hex sha256 over the names and contents of the compiled modules, those they import and
+    the C sources, and the interpreter's cache tag: what a build is stamped with."""
     h = hashlib.sha256(sys.implementation.cache_tag.encode())
     for rel in MODULES + DEPENDS + tuple(LIBRARIES.values()):
         h.update(b"\0" + rel.encode() + b"\0")
@@ -117,8 +117,9 @@ def _fresh_build() -> Path | None:
 
 
 def use_native(package: str, path: list[str]) -> None:
-    """Called by a package's ``__init__`` with its ``__name__`` and ``__path__``: its compiled
-    modules come first where a fresh build exists; its other modules load from source."""
+    """Called by a package's ``__init__`` with its ``__name__`` (``package``) and ``__path__``
+    (``path``, changed in place): its compiled modules come first where a fresh build exists;
+    its other modules load from source."""
     d = _fresh_build()
     if d is None:
         return
@@ -128,8 +129,8 @@ def use_native(package: str, path: list[str]) -> None:
 
 
 def library(name: str) -> ctypes.CDLL | None:
-    """The shared library ``name`` of LIBRARIES from a fresh build (None: no fresh build, or the
-    library does not load there; the caller runs its pure-Python way then)."""
+    """The shared library ``name`` of LIBRARIES from a fresh build, as a ``ctypes.CDLL`` (None: no
+    fresh build, or the library does not load there; the caller runs its pure-Python way then)."""
     d = _fresh_build()
     if d is None:
         return None
@@ -141,7 +142,7 @@ def library(name: str) -> ctypes.CDLL | None:
 
 
 def compiled_loaded() -> list[str]:
-    """The modules of MODULES imported so far from the compiled build."""
+    """The dotted names of the modules of MODULES imported so far from the compiled build."""
     names = [_module_name(rel) for rel in MODULES]
     return [n for n in names if n in sys.modules
             and not (getattr(sys.modules[n], "__file__", None) or ".py").endswith(".py")]
@@ -155,8 +156,9 @@ def _loads(d: Path) -> bool:
 
 
 def build(out: Path) -> str:
-    """Compile MODULES into ``out`` (replaced whole once the build succeeded); returns a line
-    saying what was done. One build at a time per directory (a lock beside it)."""
+    """Compile MODULES and LIBRARIES into the directory ``out`` (replaced whole once the build
+    succeeded); returns a line saying what was done. One build at a time per directory (a lock
+    beside it); RuntimeError when the sources changed during the build."""
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -204,6 +206,8 @@ def _compile_library(source: Path, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``build`` or ``status`` from ``argv`` (default: the command line); the exit code, 1 when
+    the build failed (pure Python still runs)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("command", choices=("build", "status"))
     args = parser.parse_args(argv)
@@ -226,7 +230,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(loaded)} of {len(MODULES)} modules compiled, {len(libs)} of {len(LIBRARIES)} "
           f"libraries ({native_dir()})")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

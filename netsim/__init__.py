@@ -1,4 +1,4 @@
-"""netsim: the 5G NR network simulator federate and its cell models (``cell``: the interface,
+"""netsim: the 5G NR network simulator federate and its cell models (``radio_cell``: the interface,
 ``simple``: shared-capacity queues, ``nr``: the NR system-level model, ``standalone``: the cell
 alone under camera load, ``federate``: the cell on the simulated clock)."""
 

@@ -1,9 +1,6 @@
-"""The interface every radio cell model implements, and the packet records it produces.
-
-The netsim federate owns the clock and the wire format; a ``RadioCell`` only sees IP packets entering
-sender buffers and is stepped one slot at a time. Implementations: ``netsim.simple.SimpleCell``
-(shared-capacity queues) and the NR system-level model.
-"""
+"""The interface every radio cell model implements, and the packet records it produces: a cell
+sees IP packets entering sender buffers and is stepped one slot at a time (the netsim federate
+owns the clock). Implementations: ``netsim.simple.SimpleCell``, ``netsim.nr.NrCell``."""
 
 from __future__ import annotations
 
@@ -26,8 +23,10 @@ LOSS_BUFFER = "buffer_overflow"  # sender buffer full on arrival
 class Packet:
     """One IP packet handed to a sender's modem.
 
-    ``enqueue_us`` is the slot boundary at which it enters the sender buffer; ``ue`` is the UE it
-    belongs to (the sender in uplink, the receiver in downlink); ``flow`` names its QoS flow.
+    ``packet_id`` identifies it in the run; ``flow`` names its QoS flow; ``ue`` is the UE it
+    belongs to (the sender in uplink, the receiver in downlink); ``direction`` is ``ul`` or
+    ``dl``; ``size_bytes`` its IP size; ``enqueue_us`` the slot boundary (us) at which it enters
+    the sender buffer; ``ref`` whatever the caller routes it by (the cell never reads it).
     """
 
     __slots__ = ("packet_id", "flow", "ue", "direction", "size_bytes", "enqueue_us", "ref")
@@ -48,7 +47,8 @@ class Packet:
 
 
 class PacketOutcome:
-    """The fate of a packet: delivered at ``deliver_us`` (a slot end) or lost with ``cause``."""
+    """The fate of ``packet``: delivered at ``deliver_us`` (us, a slot end) or lost (None) with
+    ``cause`` (one of the ``LOSS_*`` values)."""
 
     __slots__ = ("packet", "deliver_us", "cause")
 
@@ -62,13 +62,14 @@ class PacketOutcome:
 
     @property
     def delivered(self) -> bool:
+        """Whether the packet arrived."""
         return self.deliver_us is not None
 
 
 @dataclass(slots=True)
 class FlowQos:
     """Per-flow QoS: lower ``priority`` is served first; packets older than ``delay_budget_us``
-    are discarded at the sender (None: no budget). ``urgency`` weighs the flow's UE in a
+    (us) are discarded at the sender (None: no budget). ``urgency`` weighs the flow's UE in a
     proportional-fair ranking among UEs of equal priority (1: plain PF); the gNB sets it from a
     budget it was told through lower-layer signalling."""
 
@@ -78,16 +79,17 @@ class FlowQos:
 
 
 class RadioCell(ABC):
-    """A radio cell stepped slot by slot."""
+    """A radio cell stepped slot by slot of ``slot_us`` (us)."""
 
     slot_us: int
 
     @abstractmethod
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
-        """Put a packet in its sender buffer; returns an outcome at once if it is refused."""
+        """Put ``packet`` in its sender buffer from its ``enqueue_us`` on; its outcome at once if
+        it is refused."""
 
     def enqueue_many(self, packets: Iterable[Packet]) -> list[PacketOutcome]:
-        """``enqueue`` each packet in order; the outcomes of those refused at once."""
+        """``enqueue`` each of ``packets`` in order; the outcomes of those refused at once."""
         refused = []
         for packet in packets:
             outcome = self.enqueue(packet)
@@ -97,23 +99,23 @@ class RadioCell(ABC):
 
     @abstractmethod
     def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
-        """Simulate the slot starting at ``slot_start_us``; outcomes decided in it (deliveries at
-        ``slot_start_us + slot_us``, losses)."""
+        """Simulate the slot starting at ``slot_start_us`` (us, a multiple of ``slot_us``);
+        outcomes decided in it (deliveries at ``slot_start_us + slot_us``, losses)."""
 
     @abstractmethod
     def has_pending(self) -> bool:
         """True while any buffer or HARQ process holds data, i.e. the next slot has work."""
 
     def earliest_delivery_us(self, ue: str, direction: str) -> int | None:
-        """A lower bound on the start of the slot at whose end this cell may next deliver a packet
-        of ``ue`` in ``direction`` that it holds now, were nothing more enqueued; None: no bound
+        """A lower bound on the start (us) of the slot at whose end this cell may next deliver a
+        packet of UE ``ue`` in ``direction`` (``ul``/``dl``) that it holds now, were nothing more enqueued; None: no bound
         (the next slot may). A federate promises from it when it sends its next delivery."""
         return None
 
     @abstractmethod
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
-        """Change a flow's QoS (e.g. the co-design policy's latency budget L_r); ``ue`` names the
-        flow's UE where the QoS weighs its scheduling."""
+        """Change ``flow``'s QoS to ``qos`` (e.g. the co-design policy's latency budget L_r);
+        ``ue`` names the flow's UE where the QoS weighs its scheduling."""
 
     def stats(self) -> dict[str, Any]:
         """Counters for metrics and KPIs (free-form, numbers only)."""

@@ -1,9 +1,6 @@
 """A slot's packet outcomes as the columns of the ``packets`` table and as counts per fate.
-
-Tens of thousands of packets a simulated second pass through here, a field at a time, so the
-module is compiled with the cell (``fabric.native``): the loops below then read the outcomes'
-slots directly instead of through Python attribute lookups.
-"""
+Compiled with the cell (``fabric.native``): tens of thousands of packets a simulated second pass
+through here, a field at a time."""
 
 from __future__ import annotations
 
@@ -13,7 +10,8 @@ from netsim.radio_cell import PacketOutcome
 
 
 class OutcomeColumns:
-    """The ``packets`` table's columns (``fabric.tables.PACKETS``, in its order) of some outcomes."""
+    """The ``packets`` table's columns (``fabric.tables.PACKETS``, in its order) of
+    ``outcomes``; times and latencies in us, sizes in bytes."""
 
     def __init__(self, outcomes: list[PacketOutcome]) -> None:
         self.packet_id: list[int] = []
@@ -39,6 +37,7 @@ class OutcomeColumns:
             self.lost_cause.append(o.cause)
 
     def as_dict(self) -> dict[str, list[Any]]:
+        """The columns by name."""
         return {"packet_id": self.packet_id, "flow": self.flow, "ue": self.ue, "dir": self.dir,
                 "size_bytes": self.size_bytes, "enqueue_us": self.enqueue_us,
                 "deliver_us": self.deliver_us, "latency_us": self.latency_us,
@@ -46,8 +45,9 @@ class OutcomeColumns:
 
     def tally(self, fates: dict[tuple[str, str], int], bits: dict[str, int],
               latencies: dict[str, dict[int, int]]) -> None:
-        """Add the outcomes to ``fates`` (per direction and fate: ``delivered`` or the loss
-        cause), the delivered ``bits`` per direction and the count of each latency per direction."""
+        """Add the outcomes to ``fates`` (count per direction and fate: ``delivered`` or the loss
+        cause), to ``bits`` (delivered bits per direction) and to ``latencies`` (count of each
+        latency in us, per direction)."""
         for k in range(len(self.dir)):
             d = self.dir[k]
             latency = self.latency_us[k]

@@ -1,11 +1,6 @@
-"""A shared-capacity cell: per direction, a fixed number of bytes served per slot.
-
-The first cell model of the platform: packets wait in per-direction queues ordered by flow priority
-then arrival, the head packet takes the slot's remaining bytes, a packet is delivered at the end of
-the slot that carries its last byte, unless a seeded draw loses it (``loss_probability``). Sender
-buffers are bounded per UE and packets older than their flow's delay budget are discarded before
-transmission, as the NR model does.
-"""
+"""A shared-capacity cell, the platform's first cell model: per direction, a fixed number of
+bytes served per slot to queues ordered by flow priority then arrival, with seeded losses,
+bounded sender buffers and delay-budget discards as in the NR model."""
 
 from __future__ import annotations
 
@@ -27,6 +22,11 @@ from netsim.radio_cell import (
 
 
 class SimpleCell(RadioCell):
+    """Slots of ``slot_us`` (us) serving ``ul_rate_mbps`` and ``dl_rate_mbps`` (Mbit/s) of
+    packet bytes; the head packet takes the slot's remaining bytes and is delivered at the end
+    of the slot carrying its last byte, unless a draw from ``rng`` loses it (probability
+    ``loss_probability``); at most ``buffer_bytes`` queued per UE and direction."""
+
     def __init__(self, slot_us: int, ul_rate_mbps: float, dl_rate_mbps: float, loss_probability: float,
                  buffer_bytes: int, rng: np.random.Generator) -> None:
         self.slot_us = slot_us
@@ -47,9 +47,13 @@ class SimpleCell(RadioCell):
         self.slots = 0
 
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
+        """``flow``'s priority and delay budget from ``qos`` for its next packets; ``ue`` and the
+        urgency are ignored."""
         self.qos[flow] = qos  # strict priority only: the simple cell has no per-UE ranking
 
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
+        """Queue ``packet``; refused (``buffer_overflow``) if its UE's bytes queued in its
+        direction would exceed ``buffer_bytes``."""
         key = (packet.ue, packet.direction)
         if self.buffered[key] + packet.size_bytes > self.buffer_bytes:
             return PacketOutcome(packet, None, LOSS_BUFFER)
@@ -59,9 +63,13 @@ class SimpleCell(RadioCell):
         return None
 
     def has_pending(self) -> bool:
+        """Whether a packet is queued."""
         return bool(self.queues["ul"] or self.queues["dl"])
 
     def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
+        """Serve the slot starting at ``slot_start_us`` (us); the outcomes of the packets whose
+        last byte it carries (delivered at its end, or lost by the draw) and of the head packets
+        found past their delay budget (discarded)."""
         self.slots += 1
         end = slot_start_us + self.slot_us
         out: list[PacketOutcome] = []
@@ -100,6 +108,7 @@ class SimpleCell(RadioCell):
         self.head_left[direction] = None
 
     def stats(self) -> dict[str, Any]:
+        """Slots run, bytes served and busy slots per direction."""
         return {
             "slots": self.slots,
             "ul_bytes": self.served_bytes["ul"],

@@ -1,11 +1,6 @@
-"""Sender buffers: per-flow FIFO queues of IP packets, filled into transport blocks by priority.
-
-One ``SenderBuffer`` per UE and link (the UE's buffer in UL, the gNB's per-UE buffer in DL).
-Flows are served in priority order (logical channel prioritisation, TS 38.321 5.4.3.1, with
-strict priority and no prioritised bit rate); within a flow, packets leave in arrival order and
-are segmented across TBs as needed, each segment paying an L2 header. A packet stays tracked by
-the segments that carry it until every byte is delivered or the packet is lost.
-"""
+"""Sender buffers: per-flow FIFO queues of IP packets, filled into transport blocks by priority
+(logical channel prioritisation; docs/netsim.md, "MAC"). One ``SenderBuffer`` per UE and link:
+the UE's in UL, the gNB's for that UE in DL."""
 
 from __future__ import annotations
 
@@ -15,7 +10,9 @@ from netsim.radio_cell import Packet
 
 
 class PacketEntry:
-    """An IP packet inside the cell: bytes still to send and bytes not yet delivered."""
+    """IP packet ``packet`` inside the cell: bytes still to send and bytes not yet delivered.
+    ``deadline_us``: when it is discarded unless under way (us; None: no delay budget). It stays
+    tracked by the TB segments carrying it until every byte is delivered or it is lost."""
 
     __slots__ = ("packet", "to_send", "undelivered", "lost", "deadline_us")
 
@@ -29,7 +26,8 @@ class PacketEntry:
 
 
 class FlowQueue:
-    """The packets of one QoS flow in one sender buffer."""
+    """The packets of QoS flow ``name`` in one sender buffer, served at ``priority`` (lower
+    first); ``bytes`` counts the bytes still to send."""
 
     __slots__ = ("name", "priority", "entries", "bytes")
 
@@ -45,7 +43,8 @@ Segment = tuple[PacketEntry, int]
 
 
 class SenderBuffer:
-    """The transmit buffer of one UE in one direction."""
+    """The transmit buffer of one UE in one direction: at most ``limit_bytes`` of IP bytes still
+    to send, and ``header_bytes`` of L2 header paid by each segment of a packet in a TB."""
 
     __slots__ = ("flows", "by_name", "bytes", "packets", "limit_bytes", "header_bytes")
 
@@ -58,9 +57,11 @@ class SenderBuffer:
         self.header_bytes = header_bytes
 
     def fits(self, size_bytes: int) -> bool:
+        """Whether a packet of ``size_bytes`` bytes fits under the limit."""
         return self.bytes + size_bytes <= self.limit_bytes
 
     def flow(self, name: str, priority: int) -> FlowQueue:
+        """The queue of flow ``name``, made with ``priority`` (lower first) if it is new."""
         fq = self.by_name.get(name)
         if fq is None:
             fq = FlowQueue(name, priority)
@@ -70,19 +71,21 @@ class SenderBuffer:
         return fq
 
     def set_priority(self, name: str, priority: int) -> None:
+        """Serve flow ``name`` (if it has a queue) at ``priority`` (lower first) from now on."""
         fq = self.by_name.get(name)
         if fq is not None and fq.priority != priority:
             fq.priority = priority
             self.flows.sort(key=lambda f: (f.priority, f.name))
 
     def add(self, fq: FlowQueue, entry: PacketEntry) -> None:
+        """Append ``entry`` to flow queue ``fq`` of this buffer (the limit is the caller's)."""
         fq.entries.append(entry)
         fq.bytes += entry.to_send
         self.bytes += entry.to_send
         self.packets += 1
 
     def report_bytes(self) -> int:
-        """Buffer status as the MAC sees it: data plus the L2 headers it will need."""
+        """Buffer status as the MAC sees it, bytes: data plus the L2 headers it will need."""
         return self.bytes + self.packets * self.header_bytes
 
     def best_priority(self) -> int:
@@ -93,7 +96,8 @@ class SenderBuffer:
         return 1 << 30
 
     def fill(self, payload_bytes: int) -> list[Segment]:
-        """Take up to ``payload_bytes`` (headers included) from the head of the flows."""
+        """Take up to ``payload_bytes`` bytes (headers included) from the head of the flows, in
+        priority order; the segments taken, as (packet entry, bytes of it carried)."""
         segments: list[Segment] = []
         append = segments.append
         room = payload_bytes
@@ -131,7 +135,8 @@ class SenderBuffer:
         return segments
 
     def drop_unsent(self, entry: PacketEntry, flow_name: str) -> None:
-        """Forget the bytes of ``entry`` not yet sent (discarded or already lost).
+        """Forget the bytes of ``entry``, of flow ``flow_name``, not yet sent (discarded or
+        already lost).
 
         The entry leaves its queue lazily: ``fill`` skips entries with nothing to send.
         """

@@ -1,14 +1,6 @@
-"""Link adaptation: inner loop (MCS from predicted BLER) plus outer loop (OLLA offset).
-
-Inner loop: the highest MCS whose predicted TB BLER at the estimated effective SINR, minus the
-OLLA offset, is at most the BLER target. The estimate is the EESM over the allocation of the
-channel known at the scheduling decision (ideal SRS/CSI, aged by the grant delay); its beta is
-that of the UE's previous MCS (EESM depends weakly on beta, one pass is enough).
-
-Outer loop (per UE and link): offset += step on a NACK of a first transmission, -= step *
-target / (1 - target) on an ACK, so at equilibrium the first-transmission BLER equals the
-target; clamped to [min, max] so a long run of ACKs at the top MCS cannot make it reckless.
-"""
+"""Link adaptation: inner loop (the highest MCS whose predicted BLER meets the target) plus
+outer loop (the OLLA offset, per UE and link, driven by first-transmission ACKs and NACKs);
+docs/netsim.md, "PHY abstraction"."""
 
 from __future__ import annotations
 
@@ -18,7 +10,10 @@ from netsim.nr.phy import PhyAbstraction
 
 
 class LinkAdaptation:
-    """MCS selection and OLLA state for one link (UL or DL) of every UE."""
+    """MCS selection and OLLA state for one link (UL or DL) of ``n_ue`` UEs, with ``phy``'s
+    formats and BLER curves: first-transmission TB BLER target ``bler_target`` (a fraction), the
+    OLLA offset raised by ``nack_step_db`` (dB) on a NACK and clamped to [``min_offset_db``,
+    ``max_offset_db``] (dB), MCS at most ``max_mcs``."""
 
     __slots__ = ("phy", "target", "up_db", "down_db", "min_db", "max_db", "max_mcs",
                  "offset_db", "last_mcs", "_floor_db")
@@ -42,7 +37,8 @@ class LinkAdaptation:
         ]
 
     def select(self, ue: int, sinr_eff_linear: float, n_prb: int, n_re_per_prb: int) -> int:
-        """MCS for ``n_prb`` PRBs given the estimated effective SINR (linear)."""
+        """MCS for UE index ``ue`` on ``n_prb`` PRBs of ``n_re_per_prb`` data RE each, given
+        the estimated effective SINR ``sinr_eff_linear`` (linear, not dB) minus its OLLA offset."""
         snr_db = 10.0 * math.log10(sinr_eff_linear) - self.offset_db[ue] if (
             sinr_eff_linear > 0) else -100.0
         phy = self.phy
@@ -57,6 +53,7 @@ class LinkAdaptation:
         return 0
 
     def feedback(self, ue: int, ack: bool) -> None:
-        """Outer-loop update from the HARQ feedback of a first transmission."""
+        """Outer-loop update of UE index ``ue`` from the HARQ feedback (``ack``: ACK, else NACK)
+        of a first transmission."""
         off = self.offset_db[ue] + (-self.down_db if ack else self.up_db)
         self.offset_db[ue] = min(self.max_db, max(self.min_db, off))

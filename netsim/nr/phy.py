@@ -83,7 +83,8 @@ def transport_block_size(
 ) -> int:
     """TBS in bits per TS 38.214 5.1.3.2 (valid for any ``n_prb``, including > 275).
 
-    ``n_re_per_prb`` is N'_RE before the cap of 156; ``rate`` is R (e.g. 948/1024).
+    ``n_re_per_prb`` is N'_RE before the cap of 156; ``qm`` the modulation order (bits per
+    symbol); ``rate`` is R (e.g. 948/1024); ``layers`` the MIMO layers.
     """
     n_re = min(156, n_re_per_prb) * n_prb
     n_info = n_re * rate * qm * layers
@@ -107,14 +108,16 @@ def transport_block_size(
 
 
 def ldpc_base_graph(tbs_bits: int, rate: float) -> int:
-    """LDPC base graph (TS 38.212 7.2.2 / 6.2.2): 2 for small or low-rate TBs, else 1."""
+    """LDPC base graph (TS 38.212 7.2.2 / 6.2.2) of a TB of ``tbs_bits`` bits at code rate
+    ``rate``: 2 for small or low-rate TBs, else 1."""
     if tbs_bits <= 292 or rate <= 0.25 or (tbs_bits <= 3824 and rate <= 0.67):
         return 2
     return 1
 
 
 def segment(tbs_bits: int, rate: float) -> Segmentation:
-    """Code-block segmentation of a TB of ``tbs_bits`` (TS 38.212 5.2.2)."""
+    """Code-block segmentation of a TB of ``tbs_bits`` bits at code rate ``rate`` (TS 38.212
+    5.2.2)."""
     bg = ldpc_base_graph(tbs_bits, rate)
     tb_crc = 24 if tbs_bits > 3824 else 16
     b = tbs_bits + tb_crc
@@ -142,7 +145,8 @@ def segment(tbs_bits: int, rate: float) -> Segmentation:
 
 
 def eesm(sinr_linear: np.ndarray, beta: float, weights: np.ndarray | None = None) -> float:
-    """Effective SINR (linear) of per-PRB/subband SINRs (linear) by EESM with ``beta``.
+    """Effective SINR (linear) of per-PRB/subband SINRs ``sinr_linear`` (linear) by EESM with
+    ``beta``, each SINR weighted by ``weights`` (None: equal).
 
     SINR_eff = -beta ln(sum_n w_n exp(-SINR_n / beta) / sum_n w_n). Computed relative to the
     smallest SINR so that high SINRs do not underflow the exponential.
@@ -186,7 +190,8 @@ class BlerTable:
         self.t10_db_2000 = tuple(raw["t10_db_at_2000_bits"])
 
     def cb_bler(self, mcs: int, cbs_bits: float, snr_db: float) -> float:
-        """BLER of one code block of ``cbs_bits`` information bits at ``snr_db``."""
+        """BLER of one code block of ``cbs_bits`` information bits at MCS ``mcs`` and
+        ``snr_db`` (dB)."""
         x = (snr_db - self.snr_min_db) / self.snr_step_db
         if x <= 0.0:
             return 1.0
@@ -217,8 +222,8 @@ class BlerTable:
         return j, (lc - lk[j]) / (lk[j + 1] - lk[j])
 
     def cb_bler_threshold_db(self, mcs: int, cbs_bits: float, bler: float = 0.1) -> float:
-        """SNR (dB) at which one code block of ``cbs_bits`` bits reaches ``bler`` (bisection;
-        the curves are monotone in SNR)."""
+        """SNR (dB) at which one code block of ``cbs_bits`` bits at MCS ``mcs`` reaches
+        ``bler`` (bisection; the curves are monotone in SNR)."""
         lo, hi = self.snr_min_db, self.snr_min_db + (self._n_snr - 1) * self.snr_step_db
         for _ in range(40):
             mid = 0.5 * (lo + hi)
@@ -229,7 +234,8 @@ class BlerTable:
         return hi
 
     def tb_bler(self, mcs: int, cbs_bits: float, n_cb: int, snr_db: float) -> float:
-        """BLER of a TB of ``n_cb`` code blocks: 1 - (1 - BLER_cb)^C."""
+        """BLER of a TB of ``n_cb`` code blocks of ``cbs_bits`` bits at MCS ``mcs`` and
+        ``snr_db`` (dB): 1 - (1 - BLER_cb)^C."""
         p = self.cb_bler(mcs, cbs_bits, snr_db)
         if n_cb == 1 or p <= 0.0 or p >= 1.0:
             return p
@@ -246,7 +252,8 @@ class TbFormat:
 
 
 class PhyAbstraction:
-    """MCS table, EESM betas and BLER curves of one MCS table, with cached TB formats."""
+    """MCS table, EESM betas and BLER curves of MCS table ``table``, for ``layers`` MIMO
+    layers, with cached TB formats."""
 
     def __init__(self, table: McsTableName, layers: int = 1) -> None:
         self.table_name = table
@@ -260,7 +267,8 @@ class PhyAbstraction:
         self._formats: dict[tuple[int, int, int], TbFormat] = {}
 
     def tb_format(self, n_prb: int, mcs: int, n_re_per_prb: int) -> TbFormat:
-        """TBS and segmentation for ``n_prb`` PRBs at ``mcs`` (cached: allocations repeat)."""
+        """TBS and segmentation for ``n_prb`` PRBs of ``n_re_per_prb`` data RE each at ``mcs``
+        (cached: allocations repeat)."""
         key = (n_prb, mcs, n_re_per_prb)
         fmt = self._formats.get(key)
         if fmt is None:
@@ -272,6 +280,7 @@ class PhyAbstraction:
         return fmt
 
     def bits_per_prb(self, mcs: int, n_re_per_prb: int) -> float:
-        """Information bits per PRB before TBS quantisation (N_RE R Qm layers)."""
+        """Information bits per PRB at ``mcs`` with ``n_re_per_prb`` data RE, before TBS
+        quantisation (N_RE R Qm layers)."""
         e = self.mcs[mcs]
         return min(156, n_re_per_prb) * e.rate * e.qm * self.layers

@@ -18,7 +18,8 @@ SchedulerKind = Literal["pf", "rr", "max_rate"]
 
 
 class Scheduler(ABC):
-    """Ranks candidate UEs of one link; told afterwards what each served UE got."""
+    """Ranks candidate UEs (indices 0..``n_ue`` - 1) of one link; told afterwards what each
+    served UE got."""
 
     def __init__(self, n_ue: int) -> None:
         self.n_ue = n_ue
@@ -26,15 +27,16 @@ class Scheduler(ABC):
     @abstractmethod
     def order(self, candidates: list[int], priority: list[int],
               rate: list[float], slot: int, urgency: list[float] | None = None) -> list[int]:
-        """``candidates`` in service order. ``priority[u]`` is UE u's QoS priority (lower
-        first), ``rate[u]`` its achievable rate estimate (bits per PRB), ``urgency[u]`` the
-        weight of its dynamic delay budget (None: all 1)."""
+        """``candidates`` in service order in slot index ``slot``. ``priority[u]`` is UE u's QoS
+        priority (lower first), ``rate[u]`` its achievable rate estimate (bits per PRB),
+        ``urgency[u]`` the weight of its dynamic delay budget (None: all 1)."""
 
     def ranked(self, candidates: list[int], priority: list[int],
                rate: list[float], slot: int,
                urgency: list[float] | None = None) -> Iterator[int]:
-        """``order`` as an iterator (the ranking is fixed when this is called): the cell
-        usually takes only the first UE or two, so a policy may rank lazily."""
+        """``order`` of ``candidates`` (same ``priority``, ``rate``, ``slot`` and ``urgency``)
+        as an iterator (the ranking is fixed when this is called): the cell usually takes only
+        the first UE or two, so a policy may rank lazily."""
         return iter(self.order(candidates, priority, rate, slot, urgency))
 
     def served(self, ue: int, bits: int, slot: int) -> None:  # noqa: B027 - optional hook
@@ -42,8 +44,8 @@ class Scheduler(ABC):
 
 
 class ProportionalFair(Scheduler):
-    """argmax w_u r_u / T_u with T_u(t) = beta T_u(t-1) + (1 - beta) R_u(t); w_u is the UE's
-    urgency (1 unless a dynamic delay budget was signalled for its flow: PF weighted by urgency).
+    """argmax w_u r_u / T_u with T_u(t) = beta T_u(t-1) + (1 - beta) R_u(t), beta =
+    ``forgetting_factor``, over ``n_ue`` UEs; w_u is the UE's urgency (1 unless a dynamic delay budget was signalled for its flow: PF weighted by urgency).
 
     T is kept lazily: (value, slot of the value); a UE not served for k slots decays by beta^k,
     which is the recursion with R = 0 without touching every UE every slot.
@@ -58,7 +60,8 @@ class ProportionalFair(Scheduler):
         self._powers = [forgetting_factor**k for k in range(256)]
 
     def average(self, ue: int, slot: int) -> float:
-        """T_u(slot - 1), the average served bits per slot before ``slot``."""
+        """T_u(slot - 1) of UE index ``ue``, the average served bits per slot before slot index
+        ``slot``."""
         return self.avg_bits[ue] * self.beta ** max(0, slot - 1 - self.avg_slot[ue])
 
     def _metrics(self, candidates: list[int], rate: list[float], slot: int,
@@ -99,7 +102,8 @@ class ProportionalFair(Scheduler):
     def ranked(self, candidates: list[int], priority: list[int],
                rate: list[float], slot: int,
                urgency: list[float] | None = None) -> Iterator[int]:
-        """``order``, taken lazily: the cell rarely serves more than a UE or two a slot.
+        """``order`` of ``candidates`` by ``priority``, ``rate`` and ``urgency``, taken lazily:
+        the cell rarely serves more than a UE or two a slot.
 
         The order is that of the keys (priority, metric, UE), all distinct. With one priority
         class (the usual case) the next UE is the smallest metric, the lowest UE among equal
@@ -139,7 +143,7 @@ class ProportionalFair(Scheduler):
 
 
 class RoundRobin(Scheduler):
-    """The UE served longest ago goes first."""
+    """The UE served longest ago goes first, among ``n_ue`` UEs."""
 
     def __init__(self, n_ue: int) -> None:
         super().__init__(n_ue)
@@ -163,7 +167,8 @@ class MaxRate(Scheduler):
 
 
 def make_scheduler(kind: SchedulerKind, n_ue: int, pf_forgetting_factor: float) -> Scheduler:
-    """The scheduler called ``kind``."""
+    """The scheduler called ``kind`` for ``n_ue`` UEs (``pf_forgetting_factor``: PF's beta,
+    unused by the others)."""
     if kind == "pf":
         return ProportionalFair(n_ue, pf_forgetting_factor)
     if kind == "rr":

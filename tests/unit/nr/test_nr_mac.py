@@ -6,6 +6,7 @@ from collections.abc import Iterable
 
 import pytest
 
+from netsim.nr.harq import HarqEntity, TransportBlock
 from netsim.nr.radio_cell import NrCell
 from netsim.nr.scheduler import MaxRate, ProportionalFair, RoundRobin, make_scheduler
 from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
@@ -216,6 +217,19 @@ def test_chase_combining_lowers_residual_loss() -> None:
     assert n == n2 == 480
     assert lost_none >= 10  # TBs failing twice without combining
     assert lost_chase <= lost_none / 4
+
+
+def test_harq_processes_come_back_when_the_sender_reads_the_ack() -> None:
+    harq = HarqEntity(1, 1, 2, chase=True)
+    harq.occupy(0)
+    harq.release_later(0, 5)  # a DL TB ACKed in slot 3, read at the PDCCH of slot 5
+    harq.release_due(4)
+    assert not harq.has_free_process(0)
+    harq.release_due(5)
+    assert harq.has_free_process(0)
+    tb = TransportBlock(0, [], 1000, 10, 4, 1000, 1, 100)
+    harq.missed(tb)  # a missed DCI uses an attempt and adds no soft bits
+    assert harq.combine(tb, 2.0) == 2.0 and harq.exhausted(tb)
 
 
 def test_olla_holds_first_transmission_bler_at_target() -> None:
