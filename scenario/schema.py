@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from scenario.nr import NrConfig
 
@@ -49,7 +49,9 @@ class NodeProfile(Strict):
         "refused for jobs shorter than 5 CFS periods); model: seeded draw (host-independent)"
     )
     model_us: dict[str, JobModel] = Field(
-        default_factory=dict, description="per job kind, the duration distribution in model timing"
+        default_factory=dict, description="per job kind, the duration distribution in model timing, "
+        "absolute (cpus does not scale it); a kind not given draws from its work fitted from measured "
+        "jobs (fabric/data/job_models.json) over cpus"
     )
 
 
@@ -63,6 +65,57 @@ class Nodes(Strict):
                               description="Edge node profile")
     robot: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=0.25, mem_mb=512),
                                description="robot node profile")
+
+
+# gNB height of each InF sub-scenario, TR 38.901 Table 7.8-7 (netsim/nr/layout.py holds the whole
+# table; tests/unit/nr/test_layout.py keeps the two equal).
+INF_BS_HEIGHT_M = {"SL": 1.5, "DL": 1.5, "SH": 8.0, "DH": 8.0}
+INF_GNB_COUNTS = (1, 2, 4, 6, 9, 18)
+# Path loss compensation factors alpha of TS 38.213 7.1.1 (TS 38.331 Alpha).
+UL_ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+
+class InfLayoutConfig(Strict):
+    """Several gNBs in the hall (docs/netsim.md, "Several gNBs in one hall"): a TR 38.901 InF
+    sub-scenario for the propagation, a subset of its 6 x 3 gNB lattice or explicit positions,
+    the frequency reuse and the UL open-loop power control (TS 38.213 7.1.1)."""
+
+    sub_scenario: Literal["SL", "DL", "SH", "DH"] = Field(
+        default="SL", description="InF sub-scenario (TR 38.901 Table 7.2-4): sparse/dense clutter, "
+        "low (1.5 m)/high (8 m) gNB; sets path loss, LOS probability, shadowing and gNB height")
+    gnb_count: int = Field(
+        default=18, description="gNBs taken from the 6 x 3 lattice (pitch length/6 x width/3, "
+        "half a pitch from the walls): 1, 2, 4, 6, 9 or 18 (docs/netsim.md lists which points); "
+        "ignored with gnb_positions_m")
+    gnb_positions_m: list[tuple[float, float, float]] | None = Field(
+        default=None, min_length=1, description="explicit gNB positions (x, y, z), metres; "
+        "replaces the lattice")
+    reuse: Literal[1, 3] = Field(
+        default=1, description="frequency reuse: 1 (every gNB on the whole carrier) or 3 (three "
+        "groups on a third each)")
+    ul_p0_dbm: float = Field(
+        default=-90.0, ge=-202, le=24, description="UL power control P0, target received power "
+        "per PRB, dBm (TS 38.331 p0-NominalWithGrant range -202..24)")
+    ul_alpha: float = Field(
+        default=1.0, description="UL power control path loss compensation alpha: 0, 0.4, 0.5, "
+        "0.6, 0.7, 0.8, 0.9 or 1")
+
+    @field_validator("gnb_count")
+    @classmethod
+    def _lattice_subset(cls, count: int) -> int:
+        if count not in INF_GNB_COUNTS:
+            raise ValueError(
+                f"gnb_count = {count} is not a subset of the 6 x 3 gNB lattice: allowed "
+                f"{', '.join(map(str, INF_GNB_COUNTS))}, or list the positions in gnb_positions_m")
+        return count
+
+    @field_validator("ul_alpha")
+    @classmethod
+    def _ts38213_alpha(cls, alpha: float) -> float:
+        if alpha not in UL_ALPHAS:
+            raise ValueError(f"ul_alpha = {alpha:g} is not a TS 38.213 alpha: allowed "
+                             f"{', '.join(f'{a:g}' for a in UL_ALPHAS)}")
+        return alpha
 
 
 class HallConfig(Strict):
@@ -80,6 +133,28 @@ class HallConfig(Strict):
     )
     work_cells_per_row: int = Field(default=8, ge=1, description="work cells per row along x")
     ue_height_m: float = Field(default=1.5, gt=0, description="camera and robot modem height")
+    inf_layout: InfLayoutConfig | None = Field(
+        default=None, description="several gNBs on a TR 38.901 InF layout; none: the one gNB at "
+        "gnb_position_m")
+
+    @model_validator(mode="after")
+    def _gnbs_in_hall(self) -> HallConfig:
+        layout = self.inf_layout
+        if layout is None:
+            return self
+        size = f"0..{self.length_m:g} x 0..{self.width_m:g} x 0..{self.height_m:g} m"
+        for i, (x, y, z) in enumerate(layout.gnb_positions_m or ()):
+            if not (0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m):
+                raise ValueError(
+                    f"hall.inf_layout.gnb_positions_m[{i}] = ({x:g}, {y:g}, {z:g}) m lies outside "
+                    f"the hall ({size}): every gNB must stand inside it")
+        height = INF_BS_HEIGHT_M[layout.sub_scenario]
+        if layout.gnb_positions_m is None and height > self.height_m:
+            raise ValueError(
+                f"hall.inf_layout.sub_scenario = {layout.sub_scenario} puts the gNBs at "
+                f"{height:g} m, above hall.height_m = {self.height_m:g}: raise the hall or take a "
+                f"low-gNB sub-scenario (SL, DL)")
+        return self
 
     def work_cell_origins(self, n: int) -> list[tuple[float, float]]:
         """Work cell centres, a grid centred on the gNB: row-major, ``work_cells_per_row`` per row."""
@@ -143,7 +218,7 @@ class CameraConfig(Strict):
     """The cell cameras: a D435-class RGB-D sensor and the camera node's compression.
 
     The defaults give about 35 kB per frame, 8.5 Mbit/s per loop at 30 frame/s, with the sensor
-    model on (measured by ``python -m training.measure_frames``, docs in docs/perception.md)."""
+    model on (measured by ``python tools/measure_frames.py``, docs in docs/perception.md)."""
 
     fps: int = Field(default=30, ge=1, le=90, description="frames per second")
     width_px: int = Field(default=640, ge=64, le=1920, description="image width, pixels")
@@ -509,9 +584,9 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
     parts = path.strip().split(".")
     for part in parts[:-1]:
         default = default.get(part) if isinstance(default, dict) else None
-        if part not in node:
-            # A section absent from the file starts from its defaults, so that overriding one
-            # field of it keeps the others.
+        if node.get(part) is None:
+            # A section absent from the file (or an optional one left out, None) starts from its
+            # defaults, so that overriding one field of it keeps the others.
             node[part] = copy.deepcopy(default) if isinstance(default, dict) else {}
         child = node[part]
         if not isinstance(child, dict):

@@ -49,6 +49,73 @@ def inf_sl_los_probability(d2d_m: np.ndarray | float, clutter_density: float,
     return np.exp(-np.asarray(d2d_m, dtype=float) / k)
 
 
+# The InF sub-scenarios with a calibration layout (TR 38.901 Table 7.2-4, Table 7.8-7): sparse or
+# dense clutter, low or high BS.
+INF_SUB_SCENARIOS: tuple[str, ...] = ("SL", "DL", "SH", "DH")
+# Shadow fading sigma (TR 38.901 Table 7.4.1-1): one LOS value for every InF sub-scenario, one
+# NLOS value each.
+INF_LOS_SHADOWING_STD_DB = 4.3
+INF_NLOS_SHADOWING_STD_DB: dict[str, float] = {"SL": 5.7, "DL": 7.2, "SH": 5.9, "DH": 4.0}
+# NLOS path loss A + B log10(d_3D) + 20 log10(f_GHz) of each sub-scenario (Table 7.4.1-1).
+_INF_NLOS_COEFFICIENTS: dict[str, tuple[float, float]] = {
+    "SL": (33.0, 25.5), "DL": (18.6, 35.7), "SH": (32.4, 23.0), "DH": (33.63, 21.9)}
+
+
+def _check_sub_scenario(sub_scenario: str) -> None:
+    if sub_scenario not in INF_SUB_SCENARIOS:
+        raise ValueError(f"InF sub-scenario {sub_scenario!r} is not one of "
+                         f"{', '.join(INF_SUB_SCENARIOS)}")
+
+
+def inf_pathloss_db(sub_scenario: str, d3d_m: np.ndarray | float, carrier_hz: float,
+                    los: np.ndarray | bool) -> np.ndarray:
+    """Path loss of an InF sub-scenario in dB (TR 38.901 Table 7.4.1-1), d_3D clamped to >= 1 m.
+
+    ``sub_scenario`` is SL, DL, SH or DH; ``d3d_m`` in metres, ``carrier_hz`` in Hz, ``los`` the
+    link state (arrays broadcast). LOS, every sub-scenario: 31.84 + 21.50 log10(d) + 19.00
+    log10(f_GHz). NLOS: SL max(PL_LOS, 33 + 25.5 log10(d) + 20 log10(f)); DL max(PL_LOS, PL_SL,
+    18.6 + 35.7 log10(d) + 20 log10(f)); SH max(PL_LOS, 32.4 + 23.0 log10(d) + 20 log10(f));
+    DH max(PL_LOS, 33.63 + 21.9 log10(d) + 20 log10(f)). SL equals ``inf_sl_pathloss_db``.
+    """
+    _check_sub_scenario(sub_scenario)
+    d = np.maximum(np.asarray(d3d_m, dtype=float), 1.0)
+    log_f = math.log10(carrier_hz / 1e9)
+    log_d = np.log10(d)
+    pl_los = 31.84 + 21.50 * log_d + 19.00 * log_f
+    a, b = _INF_NLOS_COEFFICIENTS[sub_scenario]
+    pl_nlos = np.maximum(pl_los, a + b * log_d + 20.0 * log_f)
+    if sub_scenario == "DL":
+        a_sl, b_sl = _INF_NLOS_COEFFICIENTS["SL"]
+        pl_nlos = np.maximum(pl_nlos, a_sl + b_sl * log_d + 20.0 * log_f)
+    return np.where(los, pl_los, pl_nlos)
+
+
+def inf_los_probability(sub_scenario: str, d2d_m: np.ndarray | float, clutter_density: float,
+                        clutter_size_m: float, clutter_height_m: float,
+                        bs_height_m: np.ndarray | float, ue_height_m: np.ndarray | float
+                        ) -> np.ndarray:
+    """LOS probability of an InF sub-scenario (TR 38.901 Table 7.4.2-1), P = exp(-d_2D / k).
+
+    Low BS (SL, DL): k = -d_clutter / ln(1 - r). High BS (SH, DH): k = -d_clutter / ln(1 - r)
+    x (h_BS - h_UT) / (h_c - h_UT): a BS above the clutter sees further. ``clutter_density`` r,
+    sizes and heights in metres; heights broadcast against ``d2d_m``. A high BS needs
+    h_UT < h_c < h_BS, the geometry the formula is written for.
+    """
+    _check_sub_scenario(sub_scenario)
+    if not 0.0 < clutter_density < 1.0:
+        raise ValueError(f"clutter density {clutter_density} must lie strictly between 0 and 1")
+    k: np.ndarray | float = -clutter_size_m / math.log(1.0 - clutter_density)
+    if sub_scenario in ("SH", "DH"):
+        h_bs = np.asarray(bs_height_m, dtype=float)
+        h_ut = np.asarray(ue_height_m, dtype=float)
+        if np.any(h_ut >= clutter_height_m) or np.any(h_bs <= clutter_height_m):
+            raise ValueError(
+                f"InF-{sub_scenario} needs UT height < clutter height ({clutter_height_m} m) "
+                f"< BS height")
+        k = k * (h_bs - h_ut) / (clutter_height_m - h_ut)
+    return np.exp(-np.asarray(d2d_m, dtype=float) / k)
+
+
 def bessel_j0(x: float) -> float:
     """Bessel function J0 (numpy has none): J0(x) = (1/pi) int_0^pi cos(x sin t) dt.
 
@@ -84,6 +151,12 @@ def exponential_field(nx: int, ny: int, step_m: float, decorrelation_m: float,
 
 def _normal_cdf(z: np.ndarray) -> np.ndarray:
     return np.array([0.5 * (1.0 + math.erf(v / math.sqrt(2.0))) for v in z])
+
+
+def normal_cdf(z: np.ndarray) -> np.ndarray:
+    """Standard normal CDF of an array of any shape (exact, through math.erf)."""
+    z = np.asarray(z, dtype=float)
+    return _normal_cdf(z.ravel()).reshape(z.shape)
 
 
 class InfSlChannel:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -92,3 +93,39 @@ def test_old_field_names_load_once_with_a_warning_naming_the_new_ones(tmp_path: 
     assert (sc.hall.work_cells_per_row, tuple(sc.hall.work_cell_pitch_m)) == (2, (6.0, 6.0))
     with pytest.raises(ScenarioError, match="given twice.*keep 'work_cell'"):
         parse_scenario({"cell": {}, "work_cell": {}})
+
+
+def test_hall_has_no_inf_layout_unless_asked_and_takes_one_by_subset_or_positions() -> None:
+    assert all(load_scenario(p).hall.inf_layout is None for p in SCENARIOS)
+    sc = parse_scenario({}, ["hall.inf_layout.gnb_count=6", "hall.inf_layout.reuse=3"])
+    layout = sc.hall.inf_layout
+    assert layout is not None
+    assert (layout.sub_scenario, layout.gnb_count, layout.reuse) == ("SL", 6, 3)
+    assert (layout.ul_p0_dbm, layout.ul_alpha) == (-90.0, 1.0)
+    given = parse_scenario({"hall": {"inf_layout": {
+        "sub_scenario": "DH", "gnb_positions_m": [[20, 30, 8], [100, 30, 8]], "ul_alpha": 0.7}}})
+    assert given.hall.inf_layout is not None
+    assert given.hall.inf_layout.gnb_positions_m == [(20.0, 30.0, 8.0), (100.0, 30.0, 8.0)]
+
+
+@pytest.mark.parametrize(("inf_layout", "hall", "field", "message"), [
+    ({"gnb_count": 5}, {}, "hall.inf_layout.gnb_count",
+     r"gnb_count = 5 is not a subset of the 6 x 3 gNB lattice: allowed 1, 2, 4, 6, 9, 18"),
+    ({"gnb_positions_m": [[10, 10, 1.5], [130, 10, 1.5]]}, {}, "hall",
+     r"hall\.inf_layout\.gnb_positions_m\[1\] = \(130, 10, 1\.5\) m lies outside the hall "
+     r"\(0\.\.120 x 0\.\.60 x 0\.\.10 m\)"),
+    ({"gnb_positions_m": [[10, 10, 12]]}, {}, "hall", r"gnb_positions_m\[0\] .* outside the hall"),
+    ({"sub_scenario": "SH"}, {"height_m": 6}, "hall",
+     r"sub_scenario = SH puts the gNBs at 8 m, above hall\.height_m = 6"),
+    ({"ul_alpha": 0.3}, {}, "hall.inf_layout.ul_alpha",
+     r"ul_alpha = 0\.3 is not a TS 38\.213 alpha: allowed 0, 0\.4, 0\.5, 0\.6, 0\.7, 0\.8, 0\.9, 1"),
+    ({"reuse": 2}, {}, "hall.inf_layout.reuse", r"1 or 3"),
+    ({"sub_scenario": "HH"}, {}, "hall.inf_layout.sub_scenario", r"'SL', 'DL', 'SH' or 'DH'"),
+])
+def test_bad_inf_layout_is_refused_naming_the_field(inf_layout: dict, hall: dict, field: str,
+                                                    message: str) -> None:
+    with pytest.raises(ScenarioError) as err:
+        parse_scenario({"hall": {**hall, "inf_layout": inf_layout}})
+    (where, said), = err.value.errors
+    assert where == field
+    assert re.search(message, said), said

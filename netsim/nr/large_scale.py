@@ -1,0 +1,87 @@
+"""Large-scale channel of every (UE, gNB) link in a multi-gNB InF hall (TR 38.901 7.4-7.6):
+distances, LOS state, path loss, shadowing and coupling loss as (n_ue, n_gnb) arrays, from
+spatially consistent maps of each gNB.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from fabric.seeding import rng as named_rng
+from netsim.nr.channel import (
+    FIELD_STEP_M,
+    exponential_field,
+    inf_los_probability,
+    inf_pathloss_db,
+    normal_cdf,
+)
+from netsim.nr.layout import InfLayout
+
+
+class InfLinks:
+    """Large scale of every link between ``ue_positions_m`` (n_ue, 3) and the gNBs of
+    ``layout``; ``carrier_hz`` in Hz, antenna gains in dBi.
+
+    Each gNB has its own LOS and shadowing maps: Gaussian fields over the hall (1 m grid,
+    exponential correlation, as the single-gNB ``channel.InfSlChannel``) drawn from streams named
+    after the gNB id. So links to different gNBs are independent (TR 38.901 7.5: the large-scale
+    parameters of different sites are uncorrelated), nearby UEs see similar values, and a link's
+    values depend on the UE position, the gNB and the seed only, never on the other UEs. One value
+    per pair serves DL and UL (reciprocity).
+
+    ``los_mode`` forces every link LOS or NLOS ("los", "nlos") or draws it ("stochastic");
+    ``shadowing_enabled`` False sets the shadowing to 0 dB. Attributes (n_ue, n_gnb): ``d2d_m``,
+    ``d3d_m``, ``los_probability``, ``los``, ``pathloss_db``, ``shadowing_db`` and
+    ``coupling_loss_db`` = path loss + shadowing - antenna gains (TR 38.901 7.8.1).
+    """
+
+    def __init__(self, layout: InfLayout, ue_positions_m: np.ndarray | Sequence[Sequence[float]],
+                 carrier_hz: float, seed: int, stream_prefix: str = "inf",
+                 gnb_antenna_gain_dbi: float = 0.0, ue_antenna_gain_dbi: float = 0.0,
+                 los_mode: str = "stochastic", shadowing_enabled: bool = True) -> None:
+        if los_mode not in ("stochastic", "los", "nlos"):
+            raise ValueError(f"los_mode {los_mode!r} is not stochastic, los or nlos")
+        sub = layout.sub_scenario
+        ue = np.asarray(ue_positions_m, dtype=float).reshape(-1, 3)
+        gnb = layout.gnb_positions_m
+        self.layout = layout
+        self.n_ue, self.n_gnb = len(ue), len(gnb)
+        delta = ue[:, None, :] - gnb[None, :, :]
+        self.d2d_m = np.hypot(delta[..., 0], delta[..., 1])
+        self.d3d_m = np.sqrt(self.d2d_m**2 + delta[..., 2] ** 2)
+        self.los_probability = inf_los_probability(
+            sub.name, self.d2d_m, sub.clutter_density, sub.clutter_size_m, sub.clutter_height_m,
+            gnb[None, :, 2], ue[:, None, 2])
+
+        nx = int(math.floor(layout.hall_length_m / FIELD_STEP_M)) + 1
+        ny = int(math.floor(layout.hall_width_m / FIELD_STEP_M)) + 1
+        ix = np.clip(np.rint(ue[:, 0] / FIELD_STEP_M).astype(int), 0, nx - 1)
+        iy = np.clip(np.rint(ue[:, 1] / FIELD_STEP_M).astype(int), 0, ny - 1)
+
+        def field(gnb_id: str, name: str, decorrelation_m: float) -> np.ndarray:
+            gen = named_rng(seed, f"{stream_prefix}/{gnb_id}/{name}")
+            return exponential_field(nx, ny, FIELD_STEP_M, decorrelation_m, gen)[ix, iy]
+
+        shape = (self.n_ue, self.n_gnb)
+        if los_mode == "los":
+            self.los = np.ones(shape, dtype=bool)
+        elif los_mode == "nlos":
+            self.los = np.zeros(shape, dtype=bool)
+        else:
+            z = np.column_stack([field(g, "los-field", sub.los_correlation_m)
+                                 for g in layout.gnb_ids]) if self.n_ue else np.empty(shape)
+            self.los = normal_cdf(z) < self.los_probability
+        self.pathloss_db = inf_pathloss_db(sub.name, self.d3d_m, carrier_hz, self.los)
+        if shadowing_enabled and self.n_ue:
+            corr = sub.shadowing_decorrelation_m
+            sf_los = np.column_stack([field(g, "shadowing-los", corr) for g in layout.gnb_ids])
+            sf_nlos = np.column_stack([field(g, "shadowing-nlos", corr) for g in layout.gnb_ids])
+            self.shadowing_db = np.where(self.los, sub.los_shadowing_std_db * sf_los,
+                                         sub.nlos_shadowing_std_db * sf_nlos)
+        else:
+            self.shadowing_db = np.zeros(shape)
+        self.coupling_loss_db = (self.pathloss_db + self.shadowing_db - gnb_antenna_gain_dbi
+                                 - ue_antenna_gain_dbi)
