@@ -415,7 +415,7 @@ def test_a_cell_camera_draws_the_same_pixels_without_the_cells_it_cannot_see() -
             world.advance_to(at)
             world.spawn(0, **part)
         world.advance_to(world.t_us + 500_000)
-        view = world._view
+        view = world._camera.view
         hidden = view.out_of_view(world.data, 0, "c0_camera", w / h)
         assert hidden is not None and len(hidden) > 0 and set(view.cell_of[hidden]) == {1, 2}
         rgb, depth = world.render(0, w, h)
