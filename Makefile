@@ -43,7 +43,7 @@ install: $(BIN)/cosim5g ## create .venv and install the project with its test to
 # runs the simulator rebuilds it first (a no-op when up to date); without a C compiler netsim runs
 # as pure Python and physics steps in a Python thread.
 native: $(BIN)/cosim5g ## compile the NR cell's modules (mypyc) and the physics stepper (C) into build/native (used while their sources are unchanged)
-	-$(BIN)/python -m fabric.native build
+	-$(BIN)/python tools/native.py build
 
 run: $(BIN)/cosim5g native ## run SCENARIO (default co_design) in the process runtime, print KPIs
 	$(BIN)/cosim5g run $(SCENARIO_FILE) --results $(RESULTS)
@@ -51,16 +51,16 @@ run: $(BIN)/cosim5g native ## run SCENARIO (default co_design) in the process ru
 smoke: $(BIN)/cosim5g native ## run the 2-loop smoke scenario in the process runtime
 	$(BIN)/cosim5g run configs/scenarios/smoke.yaml --results $(RESULTS)
 
-PACKAGES := scenario fabric domain services netsim coordinator experiments training interfaces
+PACKAGES := scenario fabric wire domain services netsim coordinator experiments training interfaces
 
 lint: $(BIN)/cosim5g ## ruff over the code, and the layer contracts (import-linter, see pyproject.toml)
-	$(BIN)/ruff check $(PACKAGES) benchmarks tests
+	$(BIN)/ruff check $(PACKAGES) benchmarks tools tests
 	$(BIN)/lint-imports
 
 test: $(BIN)/cosim5g native ## lint (ruff + layer contracts), mypy, then every test (docker tests run when a Docker daemon answers)
-	$(BIN)/ruff check $(PACKAGES) benchmarks tests
+	$(BIN)/ruff check $(PACKAGES) benchmarks tools tests
 	$(BIN)/lint-imports
-	$(BIN)/mypy $(PACKAGES) benchmarks
+	$(BIN)/mypy $(PACKAGES) benchmarks tools
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 test-unit: $(BIN)/cosim5g native ## fast unit tests only (in-memory bus)
@@ -123,7 +123,7 @@ down: ## stop the platform and remove its containers, networks and volumes (and 
 	-$(BIN)/python -c "from coordinator.runtime_docker import docker_client, reap_dead_runs; reap_dead_runs(docker_client())"
 
 calibrate: images native ## real workloads at cpus 1/0.5/0.25, process + docker: cpu-mode and wall vs ideal, 95% CIs (results/bench/)
-	$(BIN)/python -m coordinator.calibrate --runtime both --rounds $(or $(ROUNDS),6) --jobs $(or $(CAL_JOBS),6)
+	$(BIN)/cosim5g calibrate --runtime both --rounds $(or $(ROUNDS),6) --jobs $(or $(CAL_JOBS),6)
 
 bench-docker: images native ## make bench plus runs in containers: docker/process speed ratios
 	$(BIN)/python -m benchmarks.platform_bench --docker
@@ -133,22 +133,22 @@ install-train: $(BIN)/cosim5g ## add torch, onnx, gymnasium, stable-baselines3 t
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray,train]'
 
 train-perception: install-train ## render the pose data set, train the Edge pose network (CPU), export pose.onnx, re-measure
-	$(BIN)/python -m training.perception.train --regenerate
-	$(BIN)/python -m training.perception.dataset --split test --episodes 10
+	$(BIN)/python tools/train_perception.py --regenerate
+	$(BIN)/python tools/perception_dataset.py --split test --episodes 10
 	$(BIN)/python -m benchmarks.perception_accuracy --record
-	$(BIN)/python -m training.measure_frames
+	$(BIN)/python tools/measure_frames.py
 
 # The full path trains one PPO policy per lambda (two at a time, one core each, about 15 min on
 # two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 runs every step
 # on a tiny budget into a temporary directory (CI, about a minute).
 train-policy: install-train ## co-design policy: PPO per lambda, Pareto table, ship domain/models/policy.onnx (QUICK=1: 1-min check)
-	$(if $(QUICK),$(BIN)/python -m training.policy.train --quick,nice -n 19 $(BIN)/python -m training.policy.sweep --ship)
+	$(if $(QUICK),$(BIN)/python tools/train_policy.py --quick,nice -n 19 $(BIN)/python tools/policy_sweep.py --ship)
 
 policy-network: $(BIN)/cosim5g ## re-measure the policy environment's network table on the NR cell (training/policy/data/)
 	$(BIN)/python benchmarks/policy_network_table.py
 
 measure-frames: $(BIN)/cosim5g ## re-measure frame sizes and estimator error for the abstract loops
-	$(BIN)/python -m training.measure_frames
+	$(BIN)/python tools/measure_frames.py
 
 clean: ## remove results and caches (keeps .venv)
 	rm -rf results .pytest_cache .ruff_cache .mypy_cache build/native

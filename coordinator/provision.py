@@ -1,6 +1,6 @@
 """The frame model a run's abstract loops use (``domain.frame_model``): the one measured for the
 scenario's camera settings, found in the cache or the shipped data, or else measured now -- on
-first use, by ``python -m training.measure_frames`` with the run's scenario (about a minute), under
+first use, by ``training.measure_frames`` with the run's scenario (about a minute), under
 a lock so that parallel runs of a sweep measure it once -- and copied into the run directory,
 where the loops federate reads it in either runtime.
 """
@@ -21,6 +21,9 @@ from scenario.schema import Scenario
 log = logging.getLogger(__name__)
 
 MEASURE_TIMEOUT_S = 1800.0
+# The measurement runs in a process of its own, from the installed package (no script needed);
+# its arguments follow in sys.argv[1:].
+MEASURE = "import sys; from training.measure_frames import main; sys.exit(main(sys.argv[1:]))"
 
 
 class FrameModelError(RuntimeError):
@@ -57,7 +60,7 @@ def _measure(settings: dict[str, object], scenario_path: Path) -> Path:
         env = dict(os.environ)
         env.setdefault("MUJOCO_GL", "egl")
         try:
-            proc = subprocess.run([sys.executable, "-m", "training.measure_frames", "--scenario", str(scenario_path),
+            proc = subprocess.run([sys.executable, "-c", MEASURE, "--scenario", str(scenario_path),
                                    "--out", str(out)], capture_output=True, text=True, env=env,
                                   timeout=MEASURE_TIMEOUT_S)
         except subprocess.TimeoutExpired:

@@ -3,7 +3,7 @@ frame compression (camera: sensor model applied, then the scenario's codec), pos
 (Edge: decode + the scenario's estimator), a control step (robot), the host-speed scoring mix
 and a pure-Python CPU-bound reference (``spin``).
 
-``python -m domain.workloads --cpus C --jobs N`` runs every workload N times through a
+``python tools/workloads.py --cpus C --jobs N`` runs every workload N times through a
 ``ComputeNode`` of C cpus in ``cpu`` timing, interleaved job by job (spin, compress, pose, ...,
 then again) so that a drift of the host's speed hits every workload alike, and prints one JSON
 object (last line of stdout): this process's environment, its measured host score, the idle-wake penalty of its core (see
@@ -103,7 +103,8 @@ def build_jobs(frames: int = 4) -> dict[str, Callable[[], Any]]:
     ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)
     ctl.on_estimate([{"id": o["task_id"], "t_us": 1_500_000, "p": o["p"], "v": o["v"]}
                      for o in world.objects(0)])
-    ctl.on_state(*world.joint_state(0).values())
+    arm = world.joint_state(0)
+    ctl.on_state(arm["q"], arm["gripped"])
     state = {"tick": 1_500_000, "frame": 0}
 
     def compress() -> bytes:
@@ -204,7 +205,3 @@ def main(argv: list[str] | None = None) -> int:
         args.out.write_text(result + "\n")
     print(result)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

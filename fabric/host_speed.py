@@ -1,30 +1,8 @@
 """Host speed in reference cores: the scoring workload, this host's cached score and the reference.
 
-A node profile's ``cpus`` are cores of a *reference core* (docs/compute.md): the core whose score
-is recorded in ``fabric/data/reference_core.json``. Each host measures its own score
-with the same fixed, deterministic, CPU-bound scoring workload -- a mix of the kinds of work the
-platform's jobs do: interpreted Python (control, policies), small numpy array algebra (inverse
-kinematics, tracking), OpenCV image kernels and JPEG coding (compression, decoding, the
-estimator's convolutions) and zlib (depth compression) -- timed by the calling thread's CPU clock,
-so what else the process or the host runs does not count. A job's CPU time on this host times
-``host score / reference score`` is then its CPU time on the reference core, whatever the host.
-
-The score is the geometric mean over the components of their runs per CPU second, each
-component's fastest of ``MEASURE_REPS`` mixes (contention only ever slows a thread down, so the
-fastest run is the core's own speed; probes during a run take the median); the spread of
-the per-component speed ratios (host / reference) bounds how well one number maps this host's
-speed for every job (``HostScore.component_ratios``).
-
-The measured score is cached in ``$XDG_CACHE_HOME/cosim5g/host_score.json`` (default
-``~/.cache/cosim5g``), keyed by the CPU model, the interpreter and library versions and the
-scoring workload's version, and remeasured after ``CACHE_MAX_AGE_DAYS``; a score measured while
-other processes kept more than ``BUSY_CORES_LIMIT`` cores busy (from /proc/stat, over the
-measurement itself) serves its process only. ``COSIM5G_HOST_SCORE``
-injects a score (tests, or a host measured elsewhere).
-
-``python -m fabric.host_speed`` measures and prints this host's score (``--write-cache``
-stores it as the cached score); ``--write-reference`` records it as the reference core (do it on
-a quiet host).
+What a score is, where it comes from and how durations are scaled: docs/compute.md, "What cpus
+means: reference cores". ``python tools/host_speed.py`` prints this host's score
+(``--write-cache`` caches it; ``--write-reference`` records the reference core: a quiet host).
 """
 
 from __future__ import annotations
@@ -130,7 +108,7 @@ COMPONENTS = {"python": _python, "numpy": _numpy, "opencv": _opencv, "zlib": _zl
 
 
 def run_mix() -> dict[str, float]:
-    """One run of every component; thread-CPU milliseconds each."""
+    """One run of every component of the mix; returns each one's thread-CPU time, milliseconds."""
     out = {}
     for name, fn in COMPONENTS.items():
         t0 = time.thread_time_ns()
@@ -140,8 +118,8 @@ def run_mix() -> dict[str, float]:
 
 
 def measure_components(reps: int = MEASURE_REPS, fastest: bool = True) -> dict[str, float]:
-    """Thread-CPU milliseconds per component over ``reps`` mixes (after one warm-up mix): the
-    fastest run of each (``fastest``: the core's uncontended speed, since contention only ever
+    """Thread-CPU time per component over ``reps`` mixes (after one warm-up mix), milliseconds:
+    the fastest run of each (``fastest``: the core's uncontended speed, since contention only ever
     slows a thread down) or the median (the speed jobs met in that moment).
 
     The pools of OpenCV stay at one thread: the score is one core's speed."""
@@ -159,7 +137,8 @@ def measure_components(reps: int = MEASURE_REPS, fastest: bool = True) -> dict[s
 
 
 def score_of(components_ms: dict[str, float]) -> float:
-    """The score of per-component times: geometric mean of their runs per CPU second."""
+    """The score of ``components_ms`` (thread-CPU milliseconds per component): the geometric mean
+    of their runs per CPU second."""
     logs = [math.log(1000.0 / max(ms, 1e-6)) for ms in components_ms.values()]
     return math.exp(sum(logs) / len(logs))
 
@@ -176,7 +155,8 @@ def cpu_model() -> str:
 
 
 def environment() -> dict[str, str]:
-    """What a score depends on besides the CPU: interpreter and library builds."""
+    """What a score depends on, by name: the CPU model, the interpreter and library builds and the
+    scoring workload's version."""
     import cv2
 
     return {
@@ -199,7 +179,8 @@ class HostScore:
     env: dict[str, str] = field(default_factory=dict)
 
     def component_ratios(self, ref: HostScore) -> dict[str, float]:
-        """Per component, this host's speed over the reference's (>1: faster)."""
+        """Per component, this host's speed over that of ``ref``, the reference core (>1:
+        faster)."""
         return {k: ref.components_ms[k] / v for k, v in self.components_ms.items()
                 if k in ref.components_ms and v > 0}
 
@@ -212,12 +193,14 @@ def reference() -> HostScore:
         raise RuntimeError(
             f"{REFERENCE_FILE} was measured with scoring workload version "
             f"{data['env'].get('score_version')}, this code runs version {SCORE_VERSION}: "
-            "re-record it with python -m fabric.host_speed --write-reference")
+            "re-record it with python tools/host_speed.py --write-reference")
     return HostScore(score=float(data["score"]), components_ms=dict(data["components_ms"]),
                      source="reference", measured_at=str(data["measured_at"]), env=dict(data["env"]))
 
 
 def cache_path() -> Path:
+    """Where this host's score is cached: ``$XDG_CACHE_HOME/cosim5g/host_score.json`` (default
+    ``~/.cache``)."""
     root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(root) / "cosim5g" / "host_score.json"
 
@@ -252,7 +235,7 @@ def injected_score() -> float | None:
 
 
 def measure(reps: int = MEASURE_REPS) -> HostScore:
-    """Measure this host's score now (no cache)."""
+    """Measure this host's score now, each component's fastest of ``reps`` mixes (no cache)."""
     comps = measure_components(reps)
     return HostScore(score=score_of(comps), components_ms=comps, source="measured",
                      measured_at=_now(), env=environment())
@@ -307,12 +290,14 @@ def _others_busy_cores(before: float | None, after: float | None, own_cpu_s: flo
 
 
 def probe() -> float:
-    """A short measurement of the speed jobs meet now (median of a few mixes), for drift checks
-    during a run."""
+    """A short measurement of the speed jobs meet now (the score of the median of ``PROBE_REPS``
+    mixes, about 50 ms of CPU), for drift checks during a run."""
     return score_of(measure_components(PROBE_REPS, fastest=False))
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Measure and print this host's score as JSON, with ``argv`` (default: the command line)
+    saying whether to cache it or record it as the reference; the exit code."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--reps", type=int, default=15, help="mixes to take each component's fastest of")
     ap.add_argument("--write-cache", action="store_true",
@@ -326,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         path = Path(__file__).parent / REFERENCE_FILE
         record = {k: out[k] for k in ("score", "components_ms", "measured_at", "env")}
         record["about"] = ("The reference core of node profiles' cpus: this host's score, measured "
-                           "with python -m fabric.host_speed --write-reference.")
+                           "with python tools/host_speed.py --write-reference.")
         _write_atomic(path, record)
         print(f"reference core written to {path}")
     else:
@@ -341,7 +326,3 @@ def main(argv: list[str] | None = None) -> int:
             out["reference_error"] = str(exc)
     print(json.dumps(out, indent=2))
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -69,5 +69,5 @@ COPY project/ /wheelhouse/project/
 RUN pip install --no-cache-dir --no-index --no-deps /wheelhouse/project/*.whl \
  && rm -rf /wheelhouse \
  && python -c "import interfaces.api, services, netsim, experiments" \
- && python -m fabric.native status
+ && python -c "from fabric.native import main; raise SystemExit(main(['status']))"
 USER cosim:cosim

@@ -1,4 +1,5 @@
-"""The ``cosim5g`` command line: validate scenarios, run them, run the standalone network simulator.
+"""The ``cosim5g`` command line: validate scenarios, run them, run the standalone network simulator,
+calibrate the compute emulation.
 
 Exit codes: 0 success, 1 the run did not complete, 2 bad input (with a message naming the field).
 """
@@ -250,6 +251,16 @@ def cmd_netsim(args: argparse.Namespace) -> int:
     return int(netsim_main(args.rest))
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from coordinator.calibrate import main as calibrate_main
+
+    return int(calibrate_main(args.rest))
+
+
+# Subcommands whose module has its own argument parser: it gets every argument after the name.
+OWN_PARSER = {"netsim": cmd_netsim, "calibrate": cmd_calibrate}
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -418,6 +429,10 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("netsim", help="standalone 5G NR cell (calibration, benchmarks)", add_help=False)
     n.add_argument("rest", nargs=argparse.REMAINDER)
     n.set_defaults(fn=cmd_netsim)
+    cal = sub.add_parser("calibrate", help="how faithful compute emulation is: the real workloads under CPU "
+                         "limits, process and docker runtimes (results/bench/calibrate.md)", add_help=False)
+    cal.add_argument("rest", nargs=argparse.REMAINDER)
+    cal.set_defaults(fn=cmd_calibrate)
     return ap
 
 
@@ -426,8 +441,8 @@ def main(argv: list[str] | None = None) -> int:
 
     limit_malloc_arenas()  # a coordinator (run, sweep, serve) lives through many runs' threads
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["netsim"]:  # its own argument parser, options included
-        return cmd_netsim(argparse.Namespace(rest=argv[1:]))
+    if argv[:1] and argv[0] in OWN_PARSER:  # the module parses the rest, options included
+        return OWN_PARSER[argv[0]](argparse.Namespace(rest=argv[1:]))
     args = build_parser().parse_args(argv)
     return int(args.fn(args))
 

@@ -279,7 +279,3 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(result))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,14 +1,8 @@
 """Measures what the abstract loops need from the detailed ones: the compressed frame sizes of the
 real camera pipeline and the error of the real pose estimator, on frames rendered by our scene.
 
-``python -m training.measure_frames [--seconds S] [--out PATH] [--estimator NAME] [--scenario YAML]``
-renders one cell working (parts arriving twice as often as in a default run, the real controller
-picking them: domain/offline_render.py) at the camera's frame rate, passes every frame through the
-camera node's pipeline with the default camera settings (D435 sensor model, JPEG + decimated
-lossless depth) or those of ``--scenario``, runs the Edge's estimator on the decoded frame and
-compares with ground truth (training/perception/evaluate.py: parts whose top face is at least 80%
-visible). Writes ``domain/data/frame_model.json`` (the shipped model of the default camera) or
-``--out``. A run whose camera has no model yet runs this with its scenario (coordinator.provision).
+``python tools/measure_frames.py [--seconds S] [--out PATH] [--estimator NAME] [--scenario YAML]``
+writes ``domain/data/frame_model.json`` or ``--out``: docs/perception.md, "Compression".
 """
 
 from __future__ import annotations
@@ -91,7 +85,3 @@ def main(argv: list[str] | None = None) -> int:
           f"{result['estimator']} error median {result['estimator_error_median_m'] * 1000:.1f} mm, "
           f"sd/axis {result['estimator_error_sd_m'] * 1000:.1f} mm, miss rate {result['estimator_miss_rate']:.4f}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

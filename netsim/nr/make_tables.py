@@ -1,6 +1,6 @@
 """Generate the NR PHY lookup tables shipped as package data in ``netsim/nr/tables/``.
 
-Run ``python -m netsim.nr.make_tables`` to rewrite them, ``--check`` to verify that the shipped
+Run ``python tools/nr_tables.py`` to rewrite them, ``--check`` to verify that the shipped
 files are what this script produces. Every number below is either transcribed from a 3GPP table
 (TS 38.214 5.1.3.1, 5.1.3.2) or comes from the documented model in this file; nothing is fitted
 at run time.
@@ -352,11 +352,7 @@ def main(argv: list[str] | None = None) -> int:
             tmp.write_text(text)
             tmp.replace(path)
     if stale:
-        print(f"stale tables (run python -m netsim.nr.make_tables): {', '.join(stale)}",
+        print(f"stale tables (run python tools/nr_tables.py): {', '.join(stale)}",
               file=sys.stderr)
         return 1
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -198,7 +198,7 @@ def test_tracker_estimates_belt_velocity() -> None:
                     reason="training needs torch and onnx (pip install torch onnx)")
 def test_quick_training_renders_trains_and_exports() -> None:
     """The training path end to end on a tiny budget (about a minute); needs torch + onnx."""
-    proc = subprocess.run([sys.executable, "-m", "training.perception.train", "--quick", "--threads", "1"],
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "train_perception.py"), "--quick", "--threads", "1"],
                           capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "epoch 2/2" in proc.stdout and "wrote " in proc.stdout

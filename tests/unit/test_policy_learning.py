@@ -19,7 +19,8 @@ from domain import policy_features as F
 from domain import work_cell as g
 from domain.congestion import LinkEstimate
 from domain.edge_side import CoDesign
-from domain.policy import DEFAULT_POLICY_MODEL, LoopState, make_policy
+from domain.loop_state import LoopState
+from domain.policy import DEFAULT_POLICY_MODEL, make_policy
 from domain.tracker import Tracker
 from scenario.schema import PolicyConfig, Scenario, WorkCellConfig
 
@@ -225,7 +226,7 @@ def test_network_model_follows_the_measured_cell() -> None:
                     reason="training needs torch, onnx, gymnasium and stable-baselines3 (pip install -e '.[train]')")
 def test_quick_training_exports_a_model_the_edge_loads(tmp_path: Path) -> None:
     """PPO on a tiny budget, ONNX export, model card, curve; the ``learned`` policy loads it."""
-    proc = subprocess.run([sys.executable, "-m", "training.policy.train", "--quick", "--out", str(tmp_path)],
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "train_policy.py"), "--quick", "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "wrote " in proc.stdout

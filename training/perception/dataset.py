@@ -1,20 +1,8 @@
 """Labelled RGB-D frames rendered by our physics scene, for training and testing the pose network.
 
-Each episode is one cell working for a few seconds (domain/offline_render.py: parts arrive and
-the real controller picks them on ground truth) under its own randomised conditions, all drawn
-from a seeded stream: camera resolution, part sizes, yaw and lateral spread, belt speed and spawn
-period, the key light's intensity, tint and direction, ambient and head light, the parts' colour,
-the sensor's disparity noise, JPEG quality and depth decimation. Frames go through the camera
-node's real pipeline (D435 sensor model, then compression) and are stored compressed, exactly as
-the Edge receives them.
-
-Labels (cell frame and pixels) per part in play: the top-face centre's pixel, the part's centre
-and edge length, whether it is held by the cup, and its visible fraction (pixels of the part in a
-segmentation render over the top face's expected pixel area: occlusion by the arm and the image
-border show there).
-
-``python -m training.perception.dataset --split train --episodes 30 --out DIR`` writes
-``DIR/<split>/frames.bin`` (frames back to back) and ``DIR/<split>/index.json``.
+Episodes, their randomised conditions and the labels: docs/perception.md, "Training".
+``python tools/perception_dataset.py --split train --episodes 30 --out DIR`` writes
+``DIR/<split>/frames.bin`` (compressed frames back to back) and ``DIR/<split>/index.json``.
 """
 
 from __future__ import annotations
@@ -219,7 +207,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.split}: {index['frames']} frames from {args.episodes} episodes in {index['render_s']} s "
           f"-> {args.out / args.split}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,15 +1,9 @@
 """Train the Edge pose network on rendered frames and export it for ONNX Runtime.
 
-    python -m training.perception.train            # full: render the data set if missing,
-                                                   # train, export domain/models/pose.onnx
-    python -m training.perception.train --quick    # tiny budget (< 2 min): exercises every step
-                                                   # into a temporary directory (for CI)
+    python tools/train_perception.py           # render the data set if missing, train, export
+    python tools/train_perception.py --quick   # tiny budget (< 2 min) into a temporary directory
 
-CPU only; torch and onnx are needed here and nowhere else (``pip install torch onnx``). Without
-torch the command says so and exits 0, so a CI without it skips the training path cleanly.
-
-The export is recorded beside the model in ``pose.json``: data seeds and sizes, epochs, the
-validation metrics of the exported model under ONNX Runtime, the torch version, the time taken.
+CPU only, torch and onnx needed here alone; what it records: docs/perception.md, "Training".
 """
 
 from __future__ import annotations
@@ -212,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
         "val_metrics": metrics,
         "torch_version": torch.__version__,
         "total_s": round(time.time() - t_start, 1),
-        "command": "python -m training.perception.train " + " ".join(sys.argv[1:]),
+        "command": "python tools/train_perception.py " + " ".join(sys.argv[1:]),
     }
     args.out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {args.out} ({record['bytes']} B, {n_params} parameters) and {args.out.with_suffix('.json')} "
@@ -248,7 +242,3 @@ def main(argv: list[str] | None = None) -> int:
             args.regenerate = True
             return run(args)
     return run(args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

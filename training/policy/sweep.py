@@ -1,10 +1,6 @@
-"""The lambda sweep: one PPO policy per task value lambda, evaluated with the baselines on the
-same held-out cells, as a Pareto table of injected camera traffic vs task success; the shipped
-lambda is chosen from it.
-
-    python -m training.policy.sweep [--lambdas 3,10,30,100] [--steps 150000] [--jobs 2] [--ship]
-    python -m training.policy.sweep --lambdas 3,10 --reuse --ship   # evaluate trained ones again
-    python -m training.policy.sweep --report                        # rebuild pareto.md only
+"""The lambda sweep: one PPO policy per task value lambda, evaluated with the baselines on the same
+held-out cells as a Pareto table of injected camera traffic vs task success (docs/policy.md,
+"Training"); the shipped lambda is chosen from it.
 
 Choice rule: the lambda whose policy injects the least traffic among those that lose no task
 that PDP 1 (``none``) places, beyond 1 % of the tasks (the evaluation's resolution: tasks
@@ -12,7 +8,7 @@ still on the belt when an episode ends make a few tasks differ between policies 
 none qualifies, the one that loses fewest. ``--ship`` copies that policy to
 domain/models/policy.onnx with its model card, the choice and its reasons added.
 
-Writes results/policy/pareto.{md,json} and results/policy/lambda-<lambda>/ (model, card, curve).
+    python tools/policy_sweep.py [--lambdas 3,10,30,100] [--steps 150000] [--jobs 2] [--ship]
 """
 
 from __future__ import annotations
@@ -194,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     steps = trained_steps.pop() if len(trained_steps) == 1 else sorted(trained_steps)
     meta = {"episodes": args.episodes, "eval_seed": EVAL_SEED, "episode_s": EPISODE_S, "steps": steps,
             "seed": args.seed, "lambdas": lambdas, "seconds": round(time.time() - t0, 1),
-            "command": "python -m training.policy.sweep " + " ".join(argv if argv is not None else sys.argv[1:])}
+            "command": "python tools/policy_sweep.py " + " ".join(argv if argv is not None else sys.argv[1:])}
     (RESULTS / "pareto.json").write_text(json.dumps({**meta, "chosen_lambda": chosen, "why": why, "rows": rows,
                                                      "episode_rows": {r["policy"]: res["rows"] for r, res in zip(
                                                          rows, [*baselines.values(), *[learned[k] for k in sorted(learned)]],
@@ -207,7 +203,3 @@ def main(argv: list[str] | None = None) -> int:
                                  "learned": learned[chosen]})
     print(f"sweep done in {meta['seconds']} s")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,24 +1,9 @@
 """Train the learned co-design policy with PPO (stable-baselines3) and export it for ONNX Runtime.
 
-    python -m training.policy.train                 # full budget, ships domain/models/policy.onnx
-    python -m training.policy.train --quick         # tiny budget into a temporary directory (CI)
-    python -m training.policy.train --lambda 20 --seed 3 --out results/policy/lambda-20
+    python tools/train_policy.py                 # full budget, ships domain/models/policy.onnx
+    python tools/train_policy.py --quick         # tiny budget into a temporary directory (CI)
 
-PPO, because the action is a pair of small discrete choices (PDP level, latency budget), the
-reward is sparse and delayed by seconds (a task ends long after the QoS that decided it), and
-the environment is cheap but not free: an on-policy actor-critic with GAE over parallel
-episodes is the robust default there, and stable-baselines3's implementation is well tested.
-DQN would need the joint 20-way action and a replay buffer of correlated episodes; SAC/TD3 are
-for continuous actions.
-
-CPU only, one torch thread (``--threads``); torch, onnx, gymnasium and stable-baselines3 are
-needed here and nowhere at run time. Without them the command says so and exits 0.
-
-Writes into ``--out``: ``policy.onnx`` (observation -> PDP logits then budget logits),
-``policy.json`` (the model card: features, action levels, data, seeds, hyperparameters, reward,
-training history, evaluation against ``none`` and ``heuristic`` on held-out cells, the ONNX
-check), ``training_curve.png`` (results/policy/ for the shipped model: domain/models is package
-data).
+Why PPO, what it needs and what it writes into ``--out``: docs/policy.md, "Training".
 """
 
 from __future__ import annotations
@@ -284,7 +269,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                      "threads": args.threads, "train_s": round(train_s, 1), "history": history},
         "onnx_check": check,
         "versions": {"torch": torch.__version__, "stable_baselines3": stable_baselines3.__version__},
-        "command": "python -m training.policy.train " + " ".join(sys.argv[1:]),
+        "command": "python tools/train_policy.py " + " ".join(sys.argv[1:]),
     }
     # The card must be complete before the learned policy can load the model for evaluation.
     card_path = onnx_path.with_suffix(".json")
@@ -366,7 +351,3 @@ def main(argv: list[str] | None = None) -> int:
         args.out = DEFAULT_POLICY_MODEL.parent
     run(args)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
