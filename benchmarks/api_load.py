@@ -1,10 +1,9 @@
-"""Load test of the coordinator's REST API (``make load``): one ``cosim5g serve`` process, N
-clients sending a mix of requests (runs and sweeps started, status polled, pages, refusals).
+"""Load test of the coordinator's REST API (``make load``): N clients send one ``cosim5g serve`` a
+mix of requests (runs and sweeps started, status polled, pages, refusals).
 
-Reported (results/bench/api_load.{json,md}): answers by kind and status, p50/p99 response time of
-status requests and of all requests, the coordinator's RSS before and after, the most jobs ever
-pending or running at once against the queue limit, and whether every accepted job is in the
-store with an end state.
+Reports answers by kind and status, p50/p99 response times, RSS, the most jobs pending or running
+against the queue limit and whether every accepted job ended in the store
+(results/bench/api_load.{json,md}).
 """
 
 from __future__ import annotations

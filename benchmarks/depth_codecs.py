@@ -1,10 +1,7 @@
 """Lossless depth codecs for the camera node (``python -m benchmarks.depth_codecs``): size and
-single-thread CPU time per frame on D435-model depth of our working cell, at the default camera
-resolution, without and with the camera's decimation filter.
+single-thread CPU time per frame of D435-model depth, without and with the decimation filter.
 
-Candidates, all lossless, all from OpenCV, numpy and the standard library: 16-bit PNG at zlib
-levels 1, 6 and 9 and with the Huffman-only strategy; 2-D difference (plane prediction) + zigzag
-+ byte planes + zlib level 1 or 6, or lzma; JPEG 2000 in lossless mode. Prints a table and writes
+Candidates and results: docs/perception.md, "Compression and the study's traffic". Writes
 ``results/bench/depth_codecs.md``.
 """
 

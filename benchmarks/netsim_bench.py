@@ -1,14 +1,9 @@
 """Speed of the NR cell: slots simulated per wall-clock second, and where the time goes.
 
-Two loads of the reference camera scenario (netsim.standalone): 36 cameras x 8.5 Mbps (306 Mbps,
-well over the ~178.6 Mbps capacity: full buffers, buffer overflow) and 16 cameras x 8.5 Mbps
-(136 Mbps, under capacity). Each is run ``--repeat`` times and the best run is kept (the host is
-shared, the best run is the least disturbed). ``slots/s`` covers the whole loop (traffic
-generation, enqueue, run_slot, outcome bookkeeping); ``cell slots/s`` the time creating packets
-and inside NrCell.enqueue and NrCell.run_slot; ``run_slot/s`` only NrCell.run_slot. With ``--profile`` a cProfile of the 36-UE case is summarised.
-Writes results/bench/netsim.md.
-
-    python benchmarks/netsim_bench.py [--duration-s 2] [--repeat 3] [--profile]
+36 and 16 cameras x 8.5 Mbps, best of ``--repeat`` runs (docs/netsim.md, "Speed"): ``slots/s``
+the whole loop, ``cell slots/s`` packet creation and ``NrCell.enqueue``/``run_slot``,
+``run_slot/s`` ``run_slot`` alone; ``--profile`` a cProfile of the 36-UE case. Writes
+results/bench/netsim.md.
 """
 
 from __future__ import annotations

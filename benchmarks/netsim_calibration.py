@@ -1,15 +1,7 @@
 """Calibration of the NR cell: saturated uplink capacity and throughput/latency/loss vs load.
 
-1. Capacity: 36 cameras x 8.5 Mbps (306 Mbps offered, full buffers) in the reference hall
-   (netsim.standalone layout), mean delivered IP throughput over seeds. The NrConfig defaults
-   (n_prb, symbol split) are chosen so that this is ~178.6 Mbps, the study's cell capacity.
-2. Load sweep: 21 cameras (the study's capacity in loops: 178.6 / 8.5), per-camera rate scaled so
-   that the offered load goes from 50 % to 120 % of the target capacity; per point the mean over
-   seeds of delivered throughput, IP latency p50/p99 and the loss ratio by cause.
-
-Writes results/bench/netsim_calibration.{md,csv,png}. Above capacity the latency grows with the
-run length until the 1 MB UE buffers fill (then losses are buffer overflows), so those points
-depend on ``--duration-s``.
+The two measurements and their results: docs/netsim.md, "Calibration". Writes
+results/bench/netsim_calibration.{md,csv,png}; points above capacity depend on ``--duration-s``.
 
     python benchmarks/netsim_calibration.py [--duration-s 3] [--seeds 3]
 """

@@ -1,12 +1,8 @@
 """Perception accuracy and cost (``python -m benchmarks.perception_accuracy``): the learned and the
-classical pose estimators on a held-out rendered test set.
+classical pose estimators on the held-out rendered test split (rendered if missing).
 
-The test split (training/perception/dataset.py, seeds disjoint from training, wider ranges of
-part size and light) is rendered if missing. For each estimator: detection rate over the parts in
-view (top face at least 80% visible), 3-D position error of the detected parts (median, p95,
-mm; also horizontal and vertical medians), false positives per frame, and the CPU time of one
-``detect`` call per frame on one thread, as a ratio to the classical estimator's. Prints a table
-and writes ``results/bench/perception.md`` and ``.json``.
+Detection rate, position error, false positives and CPU time per frame: docs/perception.md,
+"Accuracy and cost". Writes ``results/bench/perception.md`` and ``.json``.
 """
 
 from __future__ import annotations

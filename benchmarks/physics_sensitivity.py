@@ -1,13 +1,9 @@
 """Pick-and-place sensitivity to the pose channel (``python -m benchmarks.physics_sensitivity``).
 
-Task success rate of the real controller on the MuJoCo hall when it is fed the ground-truth part
-pose of each camera frame (no netsim, no estimator) delivered after a fixed delay, with each
-frame lost independently, with and without the delay-aware correction (p + v * age). Seeded: the
-same parts arrive at the same times in every configuration. ``--pose-error-mm X`` adds a second
-panel where the poses take the abstract loops' path: ground-truth positions plus Gaussian error
-(sd X mm per axis) through the Edge's Kalman tracker, which then supplies the velocity.
-
-Prints a table and writes ``results/bench/physics_sensitivity.md`` and ``.json``.
+Task success of the real controller fed each frame's ground-truth pose after a fixed delay, frames
+lost independently, with and without the delay-aware correction (p + v * age). ``--pose-error-mm
+X`` adds the abstract loops' path: error of sd X mm per axis, the Edge's tracker. Results:
+docs/physics.md, "Tests and benchmarks"; writes ``results/bench/physics_sensitivity.md``, ``.json``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,9 @@
 """Physics speed (``python -m benchmarks.physics_speed``): the hall's real-time factor for N cells
 without rendering, and what rendering one detailed loop costs.
 
-Every cell works as in a run: parts arrive, the real controllers pick them (fed ground-truth
-poses, no netsim). Only the time spent inside the physics (``World`` stepping, spawns, commands)
-counts for the physics real-time factor; the controllers' time, which a run spends in the robot
-nodes and the abstract-loops process, is reported apart. Rendering: RGB + depth of one cell
-camera per frame, at the default and the smoke-test resolutions, and as a ratio to the physics
-cost of one cell and of the whole hall.
-
-Figures are ratios on a shared machine: compare them within one run. Prints a table and writes
-``results/bench/physics_speed.md`` and ``.json``.
+Every cell works as in a run; the real-time factor counts only the physics (``World`` stepping,
+spawns, commands), the controllers' time is reported apart. Results: docs/physics.md, "Tests
+and benchmarks"; writes ``results/bench/physics_speed.md`` and ``.json``.
 """
 
 from __future__ import annotations

@@ -1,28 +1,8 @@
 """The network model of the co-design policy's training environment, measured on the NR cell.
 
-The environment (training/policy/) has no netsim: a kept camera frame reaches the Edge after a
-latency drawn from, or is lost with a probability read from, a table indexed by the cell's
-offered uplink load and the flows' latency budget L. This script makes that table by driving
-the NR cell model (netsim.nr.radio_cell.NrCell, the scenario's hall and UE layout) with N cameras that
-capture at 30 frame/s, keep each frame with probability PDP (seeded), send frames with the sizes
-measured from real compressed frames (domain/data/frame_model.json) cut into IP packets, all
-under the same delay budget; each frame that arrives whole sends a pose packet downlink to the
-loop's robot. Per (offered load, budget) it records, over the frames enqueued after a warm-up:
-
-- frame latency quantiles (enqueue at the UE to the last packet delivered) of the frames that
-  arrived whole, the fraction of frames lost (a packet discarded late, overflowed or lost on the
-  channel; frames still queued at the end count as lost: above capacity without a budget the
-  queue only grows), the fraction of injected IP bytes discarded before transmission, the
-  delivered throughput, and the downlink pose latency quantiles.
-
-Offered load is set by the keep probability with 24 cameras (near the cell's capacity in loops),
-and by more cameras at PDP 1 above 24 loops' worth. Frames of a camera that keeps each frame
-with probability p arrive irregularly, as PDP dropping makes them; within a load the table does
-not distinguish few busy cameras from many sparse ones (the queueing is the cell's).
-
-    python benchmarks/policy_network_table.py [--duration-s 8] [--seeds 2]
-
-Writes training/policy/data/network_table.json (the environment reads it) and prints a summary.
+``make policy-network`` (``python benchmarks/policy_network_table.py [--duration-s 8] [--seeds 2]``)
+writes training/policy/data/network_table.json, frame latency and loss by offered uplink load and
+latency budget, and prints a summary: docs/policy.md, "The environment", network model.
 """
 
 from __future__ import annotations

@@ -1,17 +1,8 @@
-"""Soak and chaos (``make soak``, ``make chaos``): a platform left running for days must leave
-nothing behind and record every run's end, whatever dies.
+"""Soak and chaos (``make soak``, ``make chaos``): many runs in one coordinator, and runs with a
+fault at a random moment, must each end in one state and leave nothing behind.
 
-soak:  consecutive smoke runs inside this one coordinator process (as the REST coordinator runs
-       them), in the process runtime and, with ``--docker-runs``, in containers. Afterwards no
-       process, container, network, volume or open file descriptor of the runs may remain, and
-       the coordinator's RSS (after the warm-up runs: two in the process runtime, one in docker;
-       against after the last) grows less than 10%.
-chaos: runs with a fault at a random moment: SIGKILL or SIGSTOP of a random federate, the
-       coordinator itself SIGKILLed, or (docker) a node that hits its memory limit. Every run must
-       end in one state with a reason naming the node ("out of memory" for the memory limit), and
-       nothing of it may remain.
-
-Each prints a table and writes results/bench/{soak,chaos}.{md,json}; exit code 1 when a check fails.
+What each checks: docs/architecture.md sec. 10, "Soak and chaos". Each prints a table and writes
+results/bench/{soak,chaos}.{md,json}; exit code 1 when a check fails.
 """
 
 from __future__ import annotations

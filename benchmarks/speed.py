@@ -1,27 +1,9 @@
 """Speed of whole runs (``make bench``): the cases the platform is held to, in one table.
 
-Speed = simulated seconds per wall second (> 1 is faster than real time), for:
+What the cases are and how the windows' wall time is split: docs/architecture.md sec. 3, "Speed".
+Writes results/bench/speed.{md,json}; compare ratios within one run of this script.
 
-- 32 loops, ``detailed_loops=0``, policy none, process runtime;
-- 32 loops, ``detailed_loops=1`` (the default camera), process runtime;
-- each of those again with ``cohost=none`` (every federate in a process of its own), as a ratio;
-- the same in the docker runtime (``--docker``), as a ratio to the process runtime;
-- netsim standalone, 36 UEs at 8.5 Mbit/s (saturated), slots per wall second.
-
-Speed counts the whole run (starting the federates included). Where the windows' wall time went
-(``windows_wall_s``: from the first window to the last): per process, the share it spent
-processing windows (``busy``; a group's members share one thread, so the group's is theirs added
-up), and an upper bound of the share spent in the window protocol (barrier and messaging):
-1 - (busiest process's processing time) / windows' wall time, since the windows cannot take less
-than the busiest process's processing.
-
-Writes results/bench/speed.{md,json}. Figures from a shared machine: compare ratios within one
-run of this script. With ``--profile`` every federate of the process-runtime cases runs under
-cProfile (which slows it down: its speeds are not the benchmark's) and speed.md lists, per
-process (``core`` for the group), the functions that took the most time of their own; the statistics are kept under
-results/bench/profile/<case>/<process>.pstats.
-
-    python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1,netsim] [--profile]
+    python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1] [--profile]
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
 """The conductor: advances simulated time for one run in windows, with a count-based barrier.
 
-Each window it publishes ``advance(t_end, expected_in)`` to the federates that have something
-to do in it (an event before its end, or messages sent to them since they last took part), waits
-until each of them replied ``done``, adds up what each federate sent to each other one (the next
-window's ``expected_in``) and picks the next window: the one after, or -- when every federate's
-next event and every message in flight lies later -- straight the window holding the earliest of
-them (idle jump).
-While waiting it polls a health check so that a dead or silent federate fails the run at once.
-
-The conductor declares the coordinator's liveliness token on its bus: the federates leave when
-it vanishes, so a coordinator that dies takes its run's federates with it.
+The window protocol, idle jumps and long windows: docs/architecture.md sec. 3; its liveliness
+token and the health check it polls while it waits: sec. 4 and 10.
 """
 
 from __future__ import annotations

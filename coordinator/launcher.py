@@ -1,11 +1,7 @@
 """What a runtime must do to host a run's federates: start them, report deaths, show logs, stop.
 
-``FederateSpec`` is the runtime-independent description of one federate process (a federate, or
-a group of them: ``members``); the process runtime (``coordinator.runtime_process``) and the docker
-runtime implement ``Launcher``. Every federate process is started as ``python -m services.main
-<role> --name ... --run-id ... --endpoint ... --scenario <resolved yaml> --results <run dir>
-[--member NAME:ROLE ...]``. A runtime reports deaths and logs by federate name: a process that
-hosts several federates stands for each of them (``FederateSpec.names``).
+``FederateSpec`` describes one federate process, a federate or a group (``members``), which
+stands for each of its federates in deaths and logs (``names``); docs/architecture.md sec. 8.
 """
 
 from __future__ import annotations

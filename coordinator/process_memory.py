@@ -1,11 +1,6 @@
 """The coordinator's own memory over days of runs: glibc's malloc arenas capped.
 
-A coordinator process lives through thousands of runs, and every run starts threads (log readers,
-the zenoh router's callbacks, the conductor). glibc gives threads their own malloc arenas, up to 8
-per core, and an arena keeps the memory it once held: the coordinator's resident size grew by
-about 0.3 MiB per smoke run, 14% over 100 runs. Two arenas keep that growth to about a fifth
-(measured over repeated smoke runs in one process: +2.8 MiB over 9 runs with the default, +0.6 MiB
-with two arenas), at no cost that shows: the coordinator's threads mostly wait.
+Why, and what it saved: docs/architecture.md sec. 10, "Flat memory over days".
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """Run results: merge the federates' tables and compute the KPIs of a run directory.
 
-Layout of a run directory: ``config.yaml`` (resolved scenario), ``versions.json``, ``kpis.json``,
-``tasks.parquet`` (per task), ``packets.parquet`` (per IP packet), ``jobs.parquet`` (per compute
-job), ``frames.parquet`` (per camera frame), ``logs/`` and ``frames/`` (PNG snapshots). While the
-run goes, federates stream their rows to ``tables/<table>-<federate>.arrows``; ``merge_tables``
-turns those into the four Parquet files, for completed and failed runs alike.
+The layout of a run directory and its KPIs: docs/architecture.md sec. 9; ``merge_tables`` merges
+the streamed tables of completed and failed runs alike.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """One run's life cycle: prepare the run directory, start the router and the federates, conduct
 simulated time, stop everything on every exit path, write results and KPIs.
 
-A run ends in exactly one state: ``completed``, ``failed`` (with the federate and reason),
-``cancelled`` or ``timed_out``. A run whose coordinator died is closed afterwards by
-``salvage_run``: its streamed records merged, ``kpis.json`` saying how far it got.
+A run ends in exactly one state (``STATES``); ``salvage_run`` closes one whose coordinator died
+(docs/architecture.md sec. 10).
 """
 
 from __future__ import annotations

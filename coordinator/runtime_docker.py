@@ -1,36 +1,8 @@
 """The docker runtime: one cgroup-limited, unprivileged container per federate on a per-run network.
 
-``DockerLauncher`` implements ``coordinator.launcher.Launcher`` with the docker SDK
-(docs/architecture.md sec. 5 and 8):
-
-- one bridge network ``cosim5g-<run_id>`` and one container ``cosim5g-<run_id>-<federate>`` per
-  federate, all labelled ``cosim5g.run_id=<run_id>`` (containers also ``cosim5g.federate``,
-  ``cosim5g.role`` and ``cosim5g.owner``, the coordinator process that started them);
-- the node profile becomes the cgroup: a ``wall``-timed node gets CFS period 10 ms (a short
-  period keeps a throttled job's wall time close to cpu_time / cpus, see docs/architecture.md sec. 5)
-  and quota = cpus x period; a ``cpu``- or ``model``-timed node gets whole cores, ceil(cpus),
-  since its durations come from its jobs' CPU time and throttling would only inflate that
-  (``coordinator.docker_limits``); memory limit with no swap;
-- no privileges, every capability dropped, no-new-privileges, read-only root with a tmpfs /tmp,
-  and one bind mount: the run directory, read-write at the same path as on the coordinator's
-  side so every path in a message or a config means the same file everywhere.
-
-How federates reach the coordinator's zenoh router (docs/docker.md has the picture):
-
-- coordinator on the host (CLI): containers get ``host.docker.internal`` mapped to the host
-  (``extra_hosts: host-gateway``, i.e. the default bridge's gateway, docker0). The router must
-  listen there: ``router_listen_endpoint(port)`` gives ``tcp/<docker0 address>:<port>``, which
-  keeps the router off the host's other interfaces. Federates connect to
-  ``tcp/host.docker.internal:<port>``.
-- coordinator in a container (docker-compose.yml): ``COSIM5G_ROUTER_HOST`` names the network
-  alias of the coordinator (``coordinator``). Running containers labelled
-  ``cosim5g.attach=run-networks`` (the compose coordinator and Prometheus) are connected to each
-  run network, under the alias in their ``cosim5g.alias`` label, for the run's lifetime. The
-  router listens on ``tcp/0.0.0.0:<port>`` inside its container; federates connect to
-  ``tcp/coordinator:<port>``.
-
-Labels, run owners and the reaper of dead runs are ``coordinator.docker_runs``; cgroup limits and
-the CFS counters read back are ``coordinator.docker_limits``.
+``DockerLauncher`` implements ``coordinator.launcher.Launcher`` with the docker SDK; labels and the
+reaper are ``coordinator.docker_runs``, cgroup limits ``coordinator.docker_limits``. Containers,
+limits, hardening and how federates reach the router: docs/docker.md, "Running a run's federates".
 """
 
 from __future__ import annotations

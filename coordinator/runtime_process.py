@@ -1,12 +1,7 @@
 """The ``process`` runtime: every federate an OS process on this host, logs in the run directory.
 
-Each federate runs in its own process group so that stopping the run also ends anything it
-started; the node profile's CPU limit applies through the compute emulator's timing (``cpu`` or
-``model``), since unprivileged hosts usually do not let us create cgroups.
-
-Being in a session of its own, a federate is not ended with its coordinator's terminal or
-process group: it learns of the coordinator's death itself (``services.main``: the coordinator's
-liveliness token, and the parent-death signal, for which it is told the coordinator's pid).
+Each federate process has a session of its own and learns of the coordinator's death itself; no
+cgroup is made, so ``cpus`` acts through ``cpu`` or ``model`` timing (docs/architecture.md sec. 8).
 """
 
 from __future__ import annotations

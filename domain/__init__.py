@@ -1,9 +1,6 @@
 """The domain: code that more than one federate (or a training or measurement script) runs, with
-no bus and no process of its own: the cell model (geometry, camera intrinsics, MuJoCo world and
-scene), the arm (constants, kinematics, pick controller), the frame codec and packetisation, the
-pose estimators, the tracker, the co-design policies and the compute workloads.
-
-Federates import the domain and the fabric, never each other."""
+no bus and no process of its own (the cell, the arm, perception, the co-design policies and the
+compute workloads). Federates import the domain and the fabric, never each other."""
 
 import os
 

@@ -1,24 +1,5 @@
-"""RGB-D frame compression: JPEG for colour, lossless 16-bit depth, in one byte string.
-
-Depth is first decimated on the camera node (the RealSense SDK's decimation filter, ``factor`` x
-``factor`` blocks), then coded losslessly by one of:
-
-- ``delta-zlib`` (default): plane prediction (each pixel minus left + up - up-left, i.e. a 2-D
-  difference), zigzag to unsigned, high and low bytes as separate planes, zlib level 1. Inverse:
-  two cumulative sums, fully vectorised.
-- ``png``: 16-bit PNG, zlib level 1, OpenCV's adaptive filters.
-
-Measured on D435-model depth of our working cell (640x360, decimation 4 -> 160x90; one thread;
-``python -m benchmarks.depth_codecs`` writes results/bench/depth_codecs.md): delta-zlib 11.5 kB
-in 0.34 ms, PNG level 1 14.1 kB in 0.74 ms (level 9: 13.7 kB in 4.5 ms), JPEG 2000 lossless
-10.5 kB in 2.4 ms. delta-zlib is 19% smaller than PNG level 1 at less than half its CPU; JPEG
-2000 saves another 9% for 7x the CPU of the camera node. Undecimated (640x360) noisy depth costs
-169 kB with delta-zlib and 194 kB with PNG: the decimation filter is what fits the study's
-traffic, not the codec.
-
-Layout: magic ``CF2``, depth codec id (u8), decimation factor (u8), depth height and width
-(u16 each), then big-endian u32 lengths of the JPEG and depth parts, then both parts.
-"""
+"""RGB-D frame compression: JPEG colour and decimated, losslessly coded 16-bit depth in one byte
+string (the codecs and their measured sizes and costs: docs/perception.md)."""
 
 from __future__ import annotations
 
@@ -34,6 +15,8 @@ from domain.sensor import decimate_depth
 DepthCodec = Literal["delta-zlib", "png"]
 DEPTH_CODECS: tuple[DepthCodec, ...] = ("delta-zlib", "png")
 _MAGIC = b"CF2"
+# Magic ``CF2``, depth codec id (u8), decimation factor (u8), depth height and width (u16 each),
+# then the lengths of the JPEG and depth parts (u32 each), big-endian; then both parts.
 _HEADER = struct.Struct(">3sBBHHII")
 
 
@@ -47,7 +30,8 @@ def _unzigzag(u: np.ndarray) -> np.ndarray:
 
 
 def encode_depth_delta_zlib(depth_mm: np.ndarray) -> bytes:
-    """Lossless depth (uint16 HxW): 2-D difference, zigzag, byte planes, zlib level 1."""
+    """``depth_mm`` (uint16 HxW, mm) coded losslessly: 2-D difference, zigzag, byte planes, zlib
+    level 1."""
     x = depth_mm.astype(np.int32)
     r = x.copy()
     r[:, 1:] -= x[:, :-1]
@@ -58,7 +42,8 @@ def encode_depth_delta_zlib(depth_mm: np.ndarray) -> bytes:
 
 
 def decode_depth_delta_zlib(data: bytes, h: int, w: int) -> np.ndarray:
-    """Inverse of ``encode_depth_delta_zlib``."""
+    """Inverse of ``encode_depth_delta_zlib``: the ``h`` x ``w`` depth (uint16, mm) that ``data``
+    codes."""
     raw = np.frombuffer(zlib.decompress(data), np.uint8)
     if raw.size != 2 * h * w:
         raise ValueError("corrupt depth in frame (size mismatch)")
@@ -69,8 +54,9 @@ def decode_depth_delta_zlib(data: bytes, h: int, w: int) -> np.ndarray:
 
 def encode_frame(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int,
                  depth_codec: DepthCodec = "delta-zlib", decimation: int = 1) -> bytes:
-    """Compress an RGB (HxWx3 uint8) and depth (HxW uint16, mm, 0 = invalid) pair; depth is
-    decimated by ``decimation`` first (lossy in resolution, lossless in value)."""
+    """Compress ``rgb`` (HxWx3 uint8) as JPEG of quality ``jpeg_quality`` (0-100) and
+    ``depth_mm`` (HxW uint16, mm, 0 = invalid) with ``depth_codec``, after decimating it by
+    ``decimation`` (lossy in resolution, lossless in value)."""
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                            [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
     if not ok:
@@ -92,8 +78,9 @@ def encode_frame(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int,
 
 
 def decode_frame(data: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of ``encode_frame``: (rgb uint8 HxWx3, depth uint16 HxW mm). Decimated depth is
-    brought back to the colour resolution by repeating each block's value (0 stays invalid)."""
+    """Inverse of ``encode_frame`` for ``data``: (rgb uint8 HxWx3, depth uint16 HxW mm).
+    Decimated depth is brought back to the colour resolution by repeating each block's value (0
+    stays invalid)."""
     if len(data) < _HEADER.size:
         raise ValueError("not a compressed RGB-D frame (shorter than its header)")
     magic, codec, dec, dh, dw, n_jpg, n_dep = _HEADER.unpack_from(data)
@@ -124,8 +111,8 @@ def decode_frame(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 
 def split_packets(payload_bytes: int, mtu_bytes: int) -> list[int]:
-    """IP packet sizes carrying ``payload_bytes`` of application data (IPv4 + UDP + 12-byte
-    application header per packet)."""
+    """IP packet sizes (bytes) carrying ``payload_bytes`` of application data in packets of at
+    most ``mtu_bytes`` (IPv4 + UDP + 12-byte application header per packet)."""
     overhead = 20 + 8 + 12
     room = mtu_bytes - overhead
     n = max(1, -(-payload_bytes // room))
@@ -135,6 +122,6 @@ def split_packets(payload_bytes: int, mtu_bytes: int) -> list[int]:
 
 
 def slot_after(t_us: int, slot_us: int) -> int:
-    """The first slot boundary strictly after ``t_us``: when a packet handed to the modem at
-    ``t_us`` enters the UE buffer."""
+    """The first boundary of ``slot_us`` (us) slots strictly after ``t_us`` (us): when a packet
+    handed to the modem at ``t_us`` enters the UE buffer."""
     return (t_us // slot_us + 1) * slot_us

@@ -66,12 +66,12 @@ class UplinkMonitor:
         self._partial: dict[tuple[int, int], int] = {}
 
     def started(self, loop: int, frame_id: int, now_us: int) -> None:
-        """The first packet of frame ``frame_id`` of ``loop`` arrived at ``now_us``."""
+        """The first packet of frame ``frame_id`` of ``loop`` arrived at ``now_us`` (us)."""
         self._partial.setdefault((loop, frame_id), now_us)
 
     def frame(self, loop: int, capture_us: int, arrival_us: int, frame_id: int | None = None) -> None:
-        """Frame ``frame_id`` of ``loop`` captured at ``capture_us`` complete at the Edge at
-        ``arrival_us`` (a frame already counted lost counts as arrived too: it was late)."""
+        """Frame ``frame_id`` of ``loop`` captured at ``capture_us`` (us) complete at the Edge at
+        ``arrival_us`` (us) (a frame already counted lost counts as arrived too: it was late)."""
         if frame_id is not None:
             self._partial.pop((loop, frame_id), None)
         d = max(0, arrival_us - capture_us) / 1e6
@@ -89,7 +89,9 @@ class UplinkMonitor:
         self._lost += 1
 
     def period(self, now_us: int) -> tuple[float, float]:
-        """Fold the frames since the last call into the cell's queueing delay (s) and loss."""
+        """Fold the frames since the last call into the cell's queueing delay (s) and loss (share
+        of frames), which it returns; at ``now_us`` (us), a frame started LOST_AFTER_US ago and
+        still incomplete counts as lost."""
         for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
             del self._partial[key]
             self.lost(key[0])
@@ -101,14 +103,15 @@ class UplinkMonitor:
         return self.cell_queueing_s, self.cell_loss
 
     def estimate(self, loop: int) -> LinkEstimate:
+        """The uplink as the Edge sees it for ``loop``, and the cell's load."""
         return LinkEstimate(self.delay_s.get(loop, 0.0), self.loss.get(loop, 0.0), self.cell_queueing_s,
                             self.cell_loss)
 
 
 class Level:
-    """A PDP level in [low, 1] steered by a delay target: cut by CUT when the cell's queueing
-    delay exceeds ``target_s`` (or, with ``loss_target``, its loss exceeds that), at most once
-    per HOLD_US; raised by STEP a period otherwise."""
+    """A PDP level in [``low``, 1] steered by a delay target: cut by CUT when the cell's queueing
+    delay exceeds ``target_s`` (s) (or its loss exceeds ``loss_target``, a share of frames), at
+    most once per HOLD_US; raised by STEP a period otherwise."""
 
     def __init__(self, target_s: float, low: float, loss_target: float = 1.0) -> None:
         self.target_s = target_s
@@ -118,6 +121,8 @@ class Level:
         self._last_cut_us: int | None = None
 
     def update(self, now_us: int, queueing_s: float, loss: float) -> None:
+        """One policy period ending at ``now_us`` (us) with the cell's queueing delay
+        ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         if queueing_s > self.target_s or loss > self.loss_target:
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 self.value = max(self.low, self.value * CUT)
@@ -130,9 +135,9 @@ class LoadControl:
     """The cell-wide part of every co-design policy's PDP (docs/policy.md, "Load control"):
 
     - ``fill``: the PDP every loop may use for free, 1 while the cell's queueing delay stays under
-      ``headroom_s`` (traffic costs nothing while the cell has headroom), falling as the cell
+      ``headroom_s`` (s; traffic costs nothing while the cell has headroom), falling as the cell
       nears saturation so that the policy's own PDP takes over (None: off);
-    - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` or the
+    - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` (s) or the
       frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
       delivers instead of every queue growing (None: off); never under ``min_cap``.
 
@@ -145,14 +150,17 @@ class LoadControl:
 
     @property
     def fill(self) -> float:
+        """The PDP every loop may use for free now (0: off)."""
         return self._fill.value if self._fill is not None else 0.0
 
     @property
     def cap(self) -> float:
+        """The PDP no loop may exceed now (1: off)."""
         return self._cap.value if self._cap is not None else 1.0
 
     def update(self, now_us: int, queueing_s: float, loss: float) -> None:
-        """One policy period whose smoothed queueing delay is ``queueing_s`` and loss ``loss``."""
+        """One policy period ending at ``now_us`` (us) whose smoothed queueing delay is
+        ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         if self._fill is not None:
             self._fill.update(now_us, queueing_s, 1.0)
         if self._cap is not None:

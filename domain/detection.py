@@ -9,7 +9,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Detection:
-    """Centre of a part's top face (cell frame, metres) and its pixel area."""
+    """A part's centre (cell frame, m) and the area (px) it covers in the frame."""
 
     p: np.ndarray
     area_px: int

@@ -1,9 +1,6 @@
-"""Classical object pose estimation from one RGB-D frame: colour segmentation of the parts, depth
-back-projection of each blob's centre to a 3-D position in the cell frame.
-
-The parts are saturated orange on a dark belt; a hue/saturation threshold separates them, and
-the median depth inside the blob gives the distance to the part's top face.
-"""
+"""Classical part pose estimation from one RGB-D frame: the parts' orange segmented by hue and
+saturation, each blob's median depth (its top face) back-projected to the part's centre in the
+cell frame; and the choice between it and the learned estimator."""
 
 from __future__ import annotations
 
@@ -28,12 +25,14 @@ class Estimator(Protocol):
     name: str
 
     def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
-        """Parts in one decoded frame (rgb uint8 HxWx3, depth uint16 mm HxW, 0 = invalid)."""
+        """Parts in one decoded frame: ``rgb`` (uint8 HxWx3), ``depth_mm`` (uint16 HxW, mm, 0 =
+        invalid)."""
         ...
 
 
 class ClassicalEstimator:
-    """HSV segmentation + depth back-projection."""
+    """HSV segmentation + depth back-projection through ``intrinsics``; a part's centre is half
+    the nominal edge ``object_size_m`` (m) below its top face."""
 
     name = "classical"
 
@@ -42,6 +41,8 @@ class ClassicalEstimator:
         self.half = object_size_m / 2
 
     def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
+        """Parts in one decoded frame: ``rgb`` (uint8 HxWx3), ``depth_mm`` (uint16 HxW, mm, 0 =
+        invalid)."""
         hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
         # OpenCV hue is 0..180: orange ~ 8..22.
         mask = cv2.inRange(hsv, np.array([5, 120, 80]), np.array([25, 255, 255]))
@@ -64,8 +65,10 @@ class ClassicalEstimator:
 
 def make_estimator(name: str, intrinsics: CameraIntrinsics, object_size_m: float,
                    model_path: str | Path | None = None) -> tuple[Estimator, str | None]:
-    """The estimator called ``name`` (``learned`` or ``classical``) and, when another one had to
-    stand in, why: ``learned`` falls back to ``classical`` when its model cannot be loaded."""
+    """The estimator called ``name`` (``learned`` or ``classical``) for a camera of
+    ``intrinsics`` and parts of nominal edge ``object_size_m`` (m), the learned one from
+    ``model_path`` (default: the shipped model), and, when another one had to stand in, why:
+    ``learned`` falls back to ``classical`` when its model cannot be loaded."""
     if name == "classical":
         return ClassicalEstimator(intrinsics, object_size_m), None
     if name == "learned":

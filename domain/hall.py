@@ -1,10 +1,6 @@
-"""Builds the factory hall: N conveyor cells laid out from the scenario, composed with mjSpec.
-
-Each cell has a belt, a drop-off platform, a pedestal, a downward depth camera and a pool of part
-bodies recycled as tasks end; they are generated here as MJCF. The arm is a separate model
-(``models/arm6.xml``, see ``domain.arm``) attached once per cell on its pedestal with
-the name prefix ``c<i>_``. Every name is ``c<i>_<part>`` so each node can find its cell's parts.
-"""
+"""Builds the factory hall: N conveyor cells laid out from the scenario and generated as MJCF,
+each with its own copy of the arm (``domain.arm``) attached on its pedestal with mjSpec. Every
+name is ``c<i>_<part>``, so each node can find its cell's parts (docs/physics.md)."""
 
 from __future__ import annotations
 
@@ -24,16 +20,16 @@ PARK_Z = -0.5  # m
 
 
 def object_pool_size(sc: Scenario) -> int:
-    """Part bodies per cell: enough for every part on the belt at once (belt length / speed,
-    divided by the shortest spawn interval), plus the one in the cup and the one settling on the
-    platform."""
+    """Part bodies per cell of scenario ``sc``: enough for every part on the belt at once (belt
+    length / speed, divided by the shortest spawn interval), plus the one in the cup and the one
+    settling on the platform."""
     transit_s = 2 * g.BELT_HALF_LENGTH / sc.work_cell.belt_speed_m_s
     shortest_s = sc.work_cell.object_period_s - 2 * sc.work_cell.object_jitter_s
     return math.ceil(transit_s / max(shortest_s, 0.1)) + 2
 
 
 def park_position(slot: int) -> tuple[float, float, float]:
-    """Where pool slot ``slot`` waits, relative to the cell origin."""
+    """Where pool slot ``slot`` waits (m, relative to the cell origin)."""
     return (-0.6 + 0.2 * slot, -1.2, PARK_Z)
 
 
@@ -136,10 +132,11 @@ def build_spec(sc: Scenario) -> mujoco.MjSpec:
 
 
 def build_model(sc: Scenario) -> mujoco.MjModel:
-    """The compiled hall."""
+    """The compiled hall of scenario ``sc``."""
     return build_spec(sc).compile()
 
 
 def build_mjcf(sc: Scenario) -> str:
-    """The hall as one self-contained MJCF string (for inspection and the model tests)."""
+    """The hall of scenario ``sc`` as one self-contained MJCF string (for inspection and the
+    model tests)."""
     return build_spec(sc).to_xml()

@@ -1,17 +1,6 @@
 """Forward and inverse kinematics of one cell's arm, on the robot node's own MjModel of the arm
-(domain/models/arm6.xml, base at the origin) placed at the cell's calibrated base pose.
-
-IK is damped least squares on the 6-D tool pose error (position and orientation of the tool
-centre point), warm-started from the previous joint solution: the controller calls it every
-control period for a setpoint that moved at most ~1 cm, so one or two iterations converge.
-The geometric Jacobian comes straight from the hinge axes and anchors that ``mj_kinematics``
-computes (J_p = axis x (tcp - anchor), J_r = axis), which is all a serial chain of hinges needs.
-
-``solve_many`` is the same solver for many arms sharing one model and base pose (the abstract
-loops' arms), in lockstep: a solve of a few 6-vectors costs numpy's fixed per-call price, not
-arithmetic, so one call over the stacked arms replaces one per arm. Every operation it stacks gives
-the same bits as ``solve``'s (a unit test checks), so either path gives the same joints.
-"""
+placed at the cell's calibrated base pose: damped-least-squares IK of the 6-D tool pose,
+warm-started, for one arm or many in lockstep (docs/physics.md, "Kinematics")."""
 
 from __future__ import annotations
 
@@ -28,19 +17,21 @@ MAX_ITER_STEP_RAD = 0.2  # cap on one iteration's joint step, keeps far solves o
 
 
 def norm(v: np.ndarray) -> float:
-    """Euclidean norm of a vector, computed as ``numpy.linalg.norm`` does (the square root of the
-    dot product, so the same number to the last bit) without its dispatch, which costs more than
-    the arithmetic on the 3- and 6-vectors a control period takes dozens of."""
+    """Euclidean norm of the vector ``v``, computed as ``numpy.linalg.norm`` does (the square root
+    of the dot product, so the same number to the last bit) without its dispatch, which costs
+    more than the arithmetic on the 3- and 6-vectors a control period takes dozens of."""
     return math.sqrt(float(v.dot(v)))
 
 
 def yaw_matrix(yaw: float) -> np.ndarray:
+    """The rotation (3x3) by ``yaw`` (rad) about z."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class ArmKinematics:
-    """FK / IK of the arm in the cell frame."""
+    """FK / IK of the arm in the cell frame, its base at ``base_pos`` (m, cell frame) turned
+    ``base_yaw`` (rad) about z."""
 
     def __init__(self, base_pos: tuple[float, float, float] = g.ARM_BASE_POS,
                  base_yaw: float = g.ARM_BASE_YAW) -> None:
@@ -59,18 +50,21 @@ class ArmKinematics:
         mujoco.mj_kinematics(self.model, self.data)
 
     def fk(self, q: np.ndarray | list[float]) -> tuple[np.ndarray, np.ndarray]:
-        """Tool centre point position (m) and orientation (3x3) in the cell frame."""
+        """Tool centre point position (m) and orientation (3x3) in the cell frame at joint
+        positions ``q`` (rad)."""
         p = self.tcp_position(q)
         r = self.base_r @ self.data.site_xmat[self.site].reshape(3, 3)
         return p, r
 
     def tcp_position(self, q: np.ndarray | list[float]) -> np.ndarray:
-        """Tool centre point position (m) in the cell frame (``fk`` without the orientation)."""
+        """Tool centre point position (m) in the cell frame at joint positions ``q`` (rad)
+        (``fk`` without the orientation)."""
         self._kin(np.asarray(q, dtype=float))
         return self.base_r @ self.data.site_xpos[self.site] + self.base_p
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """6 x nq geometric Jacobian of the tool centre point (base frame), at q."""
+        """6 x nq geometric Jacobian of the tool centre point (base frame) at joint positions
+        ``q`` (rad)."""
         self._kin(q)
         return self._jac(self.data.site_xpos[self.site])
 
@@ -87,8 +81,10 @@ class ArmKinematics:
 
     def solve(self, p: np.ndarray, rot: np.ndarray, q_seed: np.ndarray, iters: int = 4,
               tol: float = 1e-5) -> tuple[np.ndarray, float]:
-        """Joint positions putting the tool at ``p`` with orientation ``rot`` (cell frame), from
-        ``q_seed``; returns (q, remaining error norm). Best effort when the pose is unreachable."""
+        """Joint positions (rad) putting the tool at ``p`` (m) with orientation ``rot`` (3x3),
+        cell frame, from ``q_seed`` (rad) in at most ``iters`` iterations, fewer once the pose
+        error norm (m and rad) is under ``tol``; returns (q, remaining error norm). Best effort
+        when the pose is unreachable."""
         pb = self.base_r.T @ (np.asarray(p, float) - self.base_p)
         rb = self.base_r.T @ np.asarray(rot, float)
         q = np.array(q_seed, dtype=float)
@@ -117,8 +113,9 @@ class ArmKinematics:
 
     def solve_many(self, p: np.ndarray, rot: np.ndarray, q_seed: np.ndarray, iters: int = 4,
                    tol: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
-        """``solve`` for n arms with this model and base pose: tool positions ``p`` (n x 3), one
-        orientation ``rot`` for all, seeds ``q_seed`` (n x nq); returns (q, error norms) as
+        """``solve`` for n arms with this model and base pose: tool positions ``p`` (n x 3, m),
+        one orientation ``rot`` for all, seeds ``q_seed`` (n x nq, rad), ``iters`` and ``tol``
+        as for ``solve``; returns (q, error norms) as
         ``solve`` returns them arm by arm, to the bit. An arm stops iterating when ``solve``
         would; the others go on."""
         n = len(q_seed)

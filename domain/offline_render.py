@@ -1,11 +1,7 @@
-"""Offline rendering of a working cell: parts arrive by the scenario's spawn plan and the real pick
-controller, fed ground-truth poses, picks them, so rendered frames show what a run's camera sees
-(parts on the belt, the arm over them, a part in the cup, parts on the platform).
-
-Used to measure frame sizes and estimator error (training/measure_frames.py) and to render the
-pose estimator's training and test sets (training/perception/). No network and no latencies: the
-controller's commands apply at once; only what the camera sees matters here.
-"""
+"""Offline rendering of a working cell: parts arrive by the scenario's spawn plan and the real
+pick controller, fed ground-truth poses with no network between, picks them, so frames show what
+a run's camera sees; for frame measurements and the pose estimator's data sets
+(docs/perception.md)."""
 
 from __future__ import annotations
 
@@ -21,8 +17,9 @@ from scenario.schema import Scenario
 
 def working_cell(sc: Scenario, spawn_rng: np.random.Generator, frame_times_us: list[int],
                  world: World | None = None, cell: int = 0) -> Iterator[tuple[int, World]]:
-    """Advance cell ``cell`` of ``world`` (a new World of ``sc`` by default) through the run and
-    yield (t_us, world) at each of ``frame_times_us`` (ascending), ready to render."""
+    """Advance cell ``cell`` of ``world`` (a new World of ``sc`` by default) through the run, its
+    parts drawn from ``spawn_rng``, and yield (t_us, world) at each of ``frame_times_us`` (us,
+    ascending), ready to render."""
     world = world or World(sc)
     step = sc.physics_timestep_us
     ctl = PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S)

@@ -1,14 +1,6 @@
-"""Learned object detection and pose estimation at the Edge: a tiny fully-convolutional network
-(trained on frames rendered by our scene, training/perception/) run with ONNX Runtime.
-
-The network sees the frame downscaled to 160x90 (colour, height above the belt from depth, depth
-validity) and outputs, on an 80x45 grid, a centre heatmap of the parts' top faces, the sub-cell
-offset of each centre and the part's edge length. Every local maximum above a threshold is a
-part: its top-face centre pixel comes from the grid cell plus offset, the distance to the top
-face from the full-resolution depth around it (median of the valid pixels over the middle of
-the face), and the part's centre is that point back-projected to the cell frame, half an edge
-(as predicted) below the top face. No torch at run time: only numpy, OpenCV and ONNX Runtime.
-"""
+"""Learned part detection and pose estimation at the Edge: a tiny fully-convolutional network
+(trained on frames rendered by our scene) run with ONNX Runtime, its heatmap peaks back-projected
+through the full-resolution depth; no torch at run time (docs/perception.md)."""
 
 from __future__ import annotations
 
@@ -39,8 +31,8 @@ ON_BELT_TOL_M = 0.02
 
 
 def model_input(rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
-    """The network's input (float32, 5 x 90 x 160) from a decoded frame (rgb uint8 HxWx3, depth
-    uint16 mm HxW at any 16:9-ish resolution)."""
+    """The network's input (float32, 5 x 90 x 160) from a decoded frame: ``rgb`` (uint8 HxWx3),
+    ``depth_mm`` (uint16 HxW, mm), at any 16:9-ish resolution."""
     small = cv2.resize(rgb, (INPUT_W, INPUT_H), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
     dep = cv2.resize(depth_mm, (INPUT_W, INPUT_H), interpolation=cv2.INTER_NEAREST).astype(np.float32) / 1000.0
     valid = (dep > 0).astype(np.float32)
@@ -49,12 +41,14 @@ def model_input(rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
 
 
 def grid_to_pixel(cx: float, cy: float, width: int, height: int) -> tuple[float, float]:
-    """Image pixel (u, v) at grid position (cx, cy) (cell units, cell centre at +0.5)."""
+    """Pixel (u, v) of a ``width`` x ``height`` px image at grid position (``cx``, ``cy``) (cell
+    units, cell centre at +0.5)."""
     return cx / GRID_W * width - 0.5, cy / GRID_H * height - 0.5
 
 
 def pixel_to_grid(u: float, v: float, width: int, height: int) -> tuple[float, float]:
-    """Inverse of ``grid_to_pixel``."""
+    """Inverse of ``grid_to_pixel``: the grid position of pixel (``u``, ``v``) of a ``width`` x
+    ``height`` px image."""
     return (u + 0.5) / width * GRID_W, (v + 0.5) / height * GRID_H
 
 
@@ -66,7 +60,8 @@ def peaks(heat: np.ndarray, threshold: float) -> list[tuple[int, int]]:
 
 
 class LearnedEstimator:
-    """ONNX Runtime inference of the pose network + depth back-projection."""
+    """ONNX Runtime inference of the pose network at ``model_path`` on ``threads`` threads +
+    depth back-projection through ``intrinsics``; ``object_size_m`` (m): the nominal part edge."""
 
     name = "learned"
 
@@ -87,11 +82,14 @@ class LearnedEstimator:
         self.threshold = float(self.info.get("score_threshold", SCORE_THRESHOLD))
 
     def raw(self, rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
-        """The network output for one frame: (4, 45, 80) = heatmap logit, offset x, offset y, size."""
+        """The network output for one frame (``rgb``, ``depth_mm`` as for ``model_input``): (4,
+        45, 80) = heatmap logit, offset x, offset y, size."""
         x = model_input(rgb, depth_mm)[None]
         return self.session.run(None, {self.input_name: x})[0][0]
 
     def detect(self, rgb: np.ndarray, depth_mm: np.ndarray) -> list[Detection]:
+        """Parts in one decoded frame: ``rgb`` (uint8 HxWx3), ``depth_mm`` (uint16 HxW, mm, 0 =
+        invalid)."""
         out = self.raw(rgb, depth_mm)
         heat = 1.0 / (1.0 + np.exp(-out[0]))
         h, w = depth_mm.shape
@@ -138,10 +136,10 @@ class LearnedEstimator:
 
 
 def model_available(model_path: str | Path = DEFAULT_MODEL) -> str | None:
-    """None if the learned estimator can run, else why not."""
+    """None if the learned estimator can run with the model at ``model_path``, else why not."""
     p = Path(model_path)
     if not p.is_file():
-        return f"model file {p} not found (train it: python -m training.perception.train)"
+        return f"model file {p} not found (train it: python tools/train_perception.py)"
     try:
         import onnxruntime  # noqa: F401
     except ImportError:

@@ -1,23 +1,6 @@
 """What a D435-class RGB-D sensor makes of the rendered scene: stereo depth noise growing with
-distance squared, invalid (zero) pixels where stereo cannot match, and colour sensor noise.
-
-The renderer gives ideal depth and colour; a real active-stereo camera does not. The model:
-
-- Depth comes from disparity ``d = f B / z`` (f focal length in pixels at the configured
-  resolution, B the 50 mm baseline). The stereo matcher's disparity error has an sd of
-  ``subpixel_px`` (Intel's depth-tuning white paper: RMS depth error = z^2 subpixel / (f B), with
-  subpixel about 0.08 px on a well-textured scene), so depth noise grows with z^2 and shrinks
-  with resolution. The matcher aggregates costs over a window, so most of that error is
-  spatially correlated (a smooth ripple over ~``corr_px`` pixels); a smaller part is per pixel.
-- Invalid pixels (depth 0): the left band the right imager cannot see (``f B / z`` columns
-  wide, the left-imager-referenced D4xx depth), occlusion shadows left of nearer surfaces
-  (points the right imager cannot see), unreliable matches at depth discontinuities, and
-  anything closer than the minimum depth.
-- Colour: photon shot noise plus read noise, ``sd = sqrt(read^2 + gain * I)`` digital numbers.
-
-These are what make real depth compress much worse than clean rendered depth; the camera
-defaults (resolution, JPEG quality) are chosen with them on (training/measure_frames.py).
-"""
+distance squared, invalid (zero) pixels where stereo cannot match, and colour shot and read
+noise; the depth decimation filter; camera capture phases (the model: docs/perception.md)."""
 
 from __future__ import annotations
 
@@ -34,7 +17,7 @@ MAX_SHADOW_PX = 48  # occlusion shadows wider than this are cut (arm very close 
 
 @dataclass(frozen=True)
 class SensorModel:
-    """Noise and invalid-pixel parameters of a D435-class camera (see the module docstring)."""
+    """Noise and invalid-pixel parameters of a D435-class camera (docs/perception.md)."""
 
     f_px: float  # focal length at the configured resolution, pixels
     baseline_m: float = 0.05  # stereo baseline, m
@@ -48,7 +31,8 @@ class SensorModel:
     rgb_gain_dn: float = 0.02  # shot noise: variance per digital number of signal
 
     def depth(self, depth_mm: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Measured depth (uint16 mm, 0 = invalid) from ideal depth (uint16 mm, HxW)."""
+        """Measured depth (uint16 mm, 0 = invalid) from the ideal depth ``depth_mm`` (uint16 HxW,
+        mm), with noise drawn from ``rng``."""
         h, w = depth_mm.shape
         z = depth_mm.astype(np.float32) / 1000.0
         valid = z >= self.min_depth_m
@@ -110,7 +94,7 @@ class SensorModel:
         return jump & (rng.random(z.shape, dtype=np.float32) < self.edge_invalid_p)
 
     def rgb(self, rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Colour with shot and read noise (uint8 HxWx3)."""
+        """``rgb`` (uint8 HxWx3) with shot and read noise drawn from ``rng``."""
         # The sd of each of the 256 levels, looked up per pixel: the same float32 values as the
         # square root taken per pixel, at a quarter of its cost; in place, no temporaries.
         sd = np.sqrt(self.rgb_read_dn**2 + self.rgb_gain_dn * np.arange(256, dtype=np.float32))
@@ -123,9 +107,10 @@ class SensorModel:
 
 
 def decimate_depth(depth_mm: np.ndarray, factor: int) -> np.ndarray:
-    """The RealSense SDK's decimation filter: each ``factor`` x ``factor`` block becomes one
-    pixel, the median of its valid pixels for factors 2 and 3, their mean for larger factors,
-    0 where a block has no valid pixel. The image is cropped to a multiple of ``factor``."""
+    """The RealSense SDK's decimation filter on ``depth_mm`` (uint16 HxW, mm, 0 = invalid): each
+    ``factor`` x ``factor`` block becomes one pixel, the median of its valid pixels for factors 2
+    and 3, their mean for larger factors, 0 where a block has no valid pixel. The image is
+    cropped to a multiple of ``factor``."""
     if factor == 1:
         return depth_mm
     h, w = (depth_mm.shape[0] // factor) * factor, (depth_mm.shape[1] // factor) * factor
@@ -143,7 +128,7 @@ def decimate_depth(depth_mm: np.ndarray, factor: int) -> np.ndarray:
 
 
 def sensor_for(cam: CameraConfig) -> SensorModel | None:
-    """The sensor model of a scenario's camera section (None for ``ideal``)."""
+    """The sensor model of a scenario's camera section ``cam`` (None for ``ideal``)."""
     if cam.sensor_model == "ideal":
         return None
     f_px = CameraIntrinsics(cam.width_px, cam.height_px, cam.fovy_deg).f_px
@@ -152,23 +137,27 @@ def sensor_for(cam: CameraConfig) -> SensorModel | None:
 
 def sense(sensor: SensorModel | None, rgb: np.ndarray, depth_mm: np.ndarray,
           rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb, depth_mm) as the sensor delivers them from the rendered pair."""
+    """(rgb, depth_mm) as ``sensor`` (None: ideal) delivers them from the rendered pair ``rgb``
+    (uint8 HxWx3) and ``depth_mm`` (uint16 HxW, mm), with noise drawn from ``rng``."""
     if sensor is None:
         return rgb, depth_mm
     return sensor.rgb(rgb, rng), sensor.depth(depth_mm, rng)
 
 
 def frame_offset_us(loop: int, loops: int, frame_period_us: int, step_us: int) -> int:
-    """Capture phase of a loop's camera: cameras are not synchronised, spread over a period."""
+    """Capture phase (us) of the camera of loop ``loop`` of ``loops``: cameras are not
+    synchronised, but spread over the frame period ``frame_period_us`` (us), on the grid of
+    ``step_us`` (us) physics steps."""
     return (loop * frame_period_us // max(loops, 1)) // step_us * step_us
 
 
 def sensor_depth_mm(depth_m: np.ndarray, noise_mm_at_1m: float,
                     rng: np.random.Generator | None) -> np.ndarray:
-    """Stereo depth as a D435-class sensor reports it: uint16 millimetres, noise growing with
-    distance squared, zero where nothing is measured. A caller whose stream serves nothing else
-    may pass ``rng=None`` for noise-free depth: the same values, without drawing (and then
-    multiplying by zero) a normal per pixel."""
+    """Stereo depth as a D435-class sensor reports ideal depth ``depth_m`` (m): uint16
+    millimetres, noise of sd ``noise_mm_at_1m`` (mm) at 1 m growing with distance squared, zero
+    where nothing is measured. A caller whose stream serves nothing else may pass ``rng=None``
+    for noise-free depth: the same values, without drawing (and then multiplying by zero) a
+    normal per pixel."""
     if rng is None:
         if noise_mm_at_1m != 0.0:
             raise ValueError(f"depth noise of {noise_mm_at_1m} mm at 1 m needs a random stream (rng=None)")

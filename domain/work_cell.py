@@ -45,7 +45,8 @@ CAMERA_X = 0.0  # m
 
 @dataclass(frozen=True)
 class CameraIntrinsics:
-    """Pinhole intrinsics of a downward camera; pixel (u, v) with v growing downwards."""
+    """Pinhole intrinsics of a downward camera of ``width`` x ``height`` px and vertical field
+    of view ``fovy_deg`` (deg); pixel (u, v) with v growing downwards."""
 
     width: int
     height: int
@@ -53,14 +54,17 @@ class CameraIntrinsics:
 
     @property
     def f_px(self) -> float:
+        """Focal length (px)."""
         return (self.height / 2) / np.tan(np.radians(self.fovy_deg) / 2)
 
     @property
     def centre(self) -> tuple[float, float]:
+        """Principal point (u, v) (px): the image centre."""
         return ((self.width - 1) / 2, (self.height - 1) / 2)
 
     def back_project(self, u: float, v: float, depth_m: float) -> np.ndarray:
-        """Cell-frame point seen at pixel (u, v) at optical depth ``depth_m``."""
+        """Cell-frame point (m) seen at pixel (``u``, ``v``) (px) at optical depth ``depth_m``
+        (m)."""
         cu, cv = self.centre
         f = self.f_px
         x = (u - cu) * depth_m / f

@@ -1,13 +1,8 @@
 """The study's figures, one function each: a table in, a matplotlib Figure out.
 
-- Fig. 4: task success rate vs loops, one curve per series, 95% (Wilson) intervals;
-- Fig. 5: injected uplink traffic and uplink throughput vs loops, with the cell's measured
-  uplink capacity;
-- Fig. 6: CDF of uplink IP packet latency at a few loads per series, and its tail (1 - CDF) on a
-  log scale;
-- Fig. 7 (sweeps grouped by condition, e.g. work cell): each series' capacity gain over the
-  reference per group, reference-limited groups marked;
-- Fig. 8 (``figures.map_y``): the task success rate over two grid fields, a panel per group.
+Fig. 4 success vs loops; 5 injected traffic and throughput vs loops, with the cell's capacity;
+6 uplink latency CDF and tail at a few loads; 7 capacity gain over the reference per group
+(reference-limited groups marked); 8 (``map_y``) success over two grid fields, a panel per group.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
 """The coordinator's jobs: runs and sweeps behind one admission lock, in one store, served by one
-pool of simulation slots sized to the host.
+pool of simulation slots sized to the host (docs/architecture.md sec. 12, "One job service").
 
-Every job gets a thread, which waits for a slot per simulation: a run takes one for its length, a
-sweep one per point. A waiting run goes before waiting sweep points, so a run submitted during a
-long sweep starts when the sweep's next point ends. At start, runs a previous coordinator left
-unfinished are failed and their records closed (``coordinator.run.salvage_run``); sweeps are
-resumed from their directories (completed points stay, points in flight run again).
+Every job has a thread that waits for a slot per simulation, a waiting run before waiting sweep
+points. At start, runs a dead coordinator left are salvaged and unfinished sweeps resumed.
 """
 
 from __future__ import annotations

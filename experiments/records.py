@@ -1,19 +1,7 @@
-"""The sweep directory and its records.
-
-``results/sweeps/<sweep_id>/``:
-
-| file | content |
-| --- | --- |
-| `sweep.yaml`, `sweep.json` | the spec, and the sweep's id, state and timestamps |
-| `points.jsonl` | one line per finished run, appended and flushed as it ends (the resume log) |
-| `points.parquet` | one row per point: swept values, seed, status, reason, every scalar KPI, run dir |
-| `loops.parquet` | every run's per-loop KPIs, with the point's swept values and seed |
-| `summary.parquet`, `capacity.json`, `fig*.png/svg`, `report.md` | see experiments.report |
-| `runs/<run_id>/` | each run's own directory (config, KPIs, tables, logs) |
+"""The sweep directory and its records (docs/architecture.md sec. 9, "Sweeps").
 
 A point is appended to ``points.jsonl`` only once its run has ended, so a sweep killed at any
-moment loses at most the points in flight; later lines for the same key win (a failed point that
-is rerun on resume replaces its row).
+moment loses at most the points in flight; later lines for the same key win.
 """
 
 from __future__ import annotations

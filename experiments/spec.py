@@ -1,25 +1,8 @@
 """The sweep spec: a base scenario, a grid over dotted scenario fields, seeds, and when to stop.
 
-A spec is YAML validated with the same field-level errors as a scenario::
-
-    name: quick
-    base: baseline                 # a shipped scenario (configs/scenarios/<name>.yaml) or a path
-    set: {duration_s: 15, detailed_loops: 0}   # fixed for every point
-    grid:
-      loops: {start: 4, stop: 36, step: 4}     # or a list: [4, 8, 12]
-      policy.name: [none, heuristic]
-    variants:                      # optional: named sets of fields, swept as the grid field `variant`
-      none: {policy.name: none}
-      learned_lower: {policy.name: learned, policy.signalling: lower}
-    seeds: 1                       # a count (seeds 1..n) or a list
-    repeat_until: {min_tasks: 100, max_seeds: 8}   # add seeds to a grid point until it has this many tasks
-
-A grid field is one scenario field; where the series to compare differ in several fields at once
-(a policy and how it signals, an ablation), `variants` names each set of fields and the grid sweeps
-`variant: [none, learned_lower]` (all of them when the grid leaves `variant` out).
-
-Every grid value, and every combination, is validated against the scenario schema when the spec
-is loaded, so a sweep never starts with a point that cannot run.
+The YAML form: README.md, "Sweeps"; ``variants`` are swept as the grid field ``variant`` (all of
+them when the grid leaves it out). Every grid value and combination is validated against the
+scenario schema when the spec loads, so a sweep never starts with a point that cannot run.
 """
 
 from __future__ import annotations

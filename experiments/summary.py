@@ -1,13 +1,8 @@
-"""Aggregation over seeds and the capacity rule.
+"""Aggregation over seeds and the capacity rule (docs/architecture.md sec. 9, "Sweeps").
 
-Per grid point: task success pooled over its seeds (placed / tasks) with a Wilson 95% interval (a
-proportion's interval that stays inside [0, 1] and is honest at 100% success), and for every
-continuous KPI the mean over seeds with a Student-t 95% interval (none from a single seed).
-
-Capacity: for each series (the grid combinations other than the load axis) and threshold, the
-largest load such that every load up to it in the grid reaches the threshold. A curve can dip and
-recover (noise, or a seed that drew a hard part): the first failing load bounds the capacity, and
-the record says where the curve recovers (``max_passing``, ``monotone``).
+Per grid point: task success pooled over seeds with a Wilson 95% interval, every continuous KPI's
+mean with a Student-t 95% interval. Capacity, per series and threshold: the largest load such
+that every load up to it in the grid reaches the threshold.
 """
 
 from __future__ import annotations

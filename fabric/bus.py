@@ -17,7 +17,8 @@ LivenessCallback = Callable[[str, bool], None]
 
 
 def key_matches(pattern: str, key: str) -> bool:
-    """zenoh-style key-expression match: ``*`` is one segment, ``**`` any number (also zero)."""
+    """Whether ``key`` matches the zenoh-style key expression ``pattern``: ``*`` is one segment,
+    ``**`` any number of them (also zero)."""
     p, k = pattern.split("/"), key.split("/")
 
     def match(i: int, j: int) -> bool:
@@ -36,21 +37,28 @@ class Bus(ABC):
     """Publish/subscribe transport with liveliness tokens."""
 
     @abstractmethod
-    def publish(self, key: str, payload: bytes) -> None: ...
+    def publish(self, key: str, payload: bytes) -> None:
+        """Send ``payload`` (bytes) under ``key`` to every subscription whose expression matches."""
 
     @abstractmethod
-    def subscribe(self, key_expr: str, callback: Callback) -> Any: ...
+    def subscribe(self, key_expr: str, callback: Callback) -> Any:
+        """Call ``callback(key, payload)`` for every publication matching ``key_expr``, possibly on
+        a transport thread; returns the subscription's handle."""
 
     @abstractmethod
     def declare_token(self, key: str) -> Any:
-        """Declare a liveliness token, withdrawn when the bus closes or the process dies."""
+        """Declare the liveliness token ``key``, withdrawn when the bus closes or the process
+        dies; returns its handle."""
 
     @abstractmethod
     def watch_liveliness(self, key_expr: str, callback: LivenessCallback) -> Any:
-        """Call ``callback(key, alive)`` for tokens appearing (also existing ones) or vanishing."""
+        """Call ``callback(key, alive)`` for tokens matching ``key_expr`` appearing (also those
+        that exist already) or vanishing."""
 
     @abstractmethod
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Drop this endpoint's subscriptions and withdraw its tokens; calling it again does
+        nothing."""
 
 
 class InMemoryHub:
@@ -73,22 +81,27 @@ class InMemoryHub:
             cb(key, payload)
 
     def publish(self, key: str, payload: bytes) -> None:
+        """Hand ``payload`` to ``deliver`` for every subscription matching ``key``."""
         with self._lock:
             items = [(cb, key, payload) for pat, cb in self._subs if key_matches(pat, key)]
         self.deliver(items)
 
     def subscribe(self, key_expr: str, callback: Callback) -> tuple[str, Callback]:
+        """Add a subscription of ``callback(key, payload)`` to ``key_expr``; returns its entry,
+        which ``unsubscribe`` takes."""
         entry = (key_expr, callback)
         with self._lock:
             self._subs.append(entry)
         return entry
 
     def unsubscribe(self, entry: tuple[str, Callback]) -> None:
+        """Remove the subscription ``entry`` (from ``subscribe``), if still there."""
         with self._lock:
             if entry in self._subs:
                 self._subs.remove(entry)
 
     def set_token(self, key: str, alive: bool) -> None:
+        """Declare (``alive``) or withdraw the token ``key``, telling the watchers that match it."""
         with self._lock:
             if alive:
                 self._tokens.add(key)
@@ -99,6 +112,8 @@ class InMemoryHub:
             cb(key, alive)
 
     def watch(self, key_expr: str, callback: LivenessCallback) -> None:
+        """Call ``callback(key, alive)`` for tokens matching ``key_expr``: at once for those
+        declared already, then on every change."""
         with self._lock:
             self._watchers.append((key_expr, callback))
             existing = [k for k in self._tokens if key_matches(key_expr, k)]

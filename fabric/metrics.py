@@ -45,16 +45,17 @@ PDP_CAP = Gauge("cosim_edge_pdp_cap", "PDP no co-design loop may exceed (the con
 
 
 def observe_many(histogram: Any, value: float, count: int) -> None:
-    """``count`` observations of ``value`` in a Histogram child, which has no bulk observe: its sum
-    and the bucket ``observe`` would pick (the first bound >= value), each updated once."""
+    """``count`` observations of ``value`` (in the histogram's unit: seconds for the latencies
+    here) in a Histogram child, which has no bulk observe: its sum and the bucket ``observe``
+    would pick (the first bound >= value), each updated once."""
     histogram._sum.inc(value * count)
     histogram._buckets[bisect_left(histogram._upper_bounds, value)].inc(count)
 
 
 def observe_all(histogram: Any, values: list[float]) -> None:
-    """An observation of each of ``values`` in a Histogram child: the same counts and sum as
-    ``observe`` one by one, each bucket and the sum updated once (a lock each, not a lock each a
-    value)."""
+    """An observation of each of ``values`` (in the histogram's unit) in a Histogram child: the
+    same counts and sum as ``observe`` one by one, each bucket and the sum updated once (a lock
+    each, not a lock each a value)."""
     if not values:
         return
     bounds = histogram._upper_bounds
@@ -64,7 +65,8 @@ def observe_all(histogram: Any, values: list[float]) -> None:
 
 
 def serve_from_env() -> int | None:
-    """Start the metrics endpoint if ``COSIM5G_METRICS_PORT`` is set; the port, or None."""
+    """Start the HTTP metrics endpoint on ``COSIM5G_METRICS_PORT`` if it is set; returns that
+    port, or None."""
     port = settings().metrics_port
     if port is None:
         return None

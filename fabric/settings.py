@@ -1,9 +1,6 @@
-"""Every setting the platform takes from its environment, in one object: the ``COSIM5G_*``
-variables, each a field of ``Settings`` (``COSIM5G_`` + the field's name in capitals).
-
-Entry points and the functions they call read ``settings()``; a runtime that starts a process
-passes settings on by ``env_name``. A bad value fails with the variable, what it was given and
-what is allowed.
+"""Every setting the platform takes from its environment: the ``COSIM5G_*`` variables, each a field
+of ``Settings``, read through ``settings()`` and passed on to processes by ``env_name``.
+A bad value fails naming the variable, the value and what is allowed.
 """
 
 from __future__ import annotations
@@ -60,8 +57,9 @@ class Settings(BaseSettings):
 
 
 def settings(**given: Any) -> Settings:
-    """The settings: ``given`` (None = not given), else the environment, else the defaults.
-    ValueError naming the variable of a bad value."""
+    """The settings: each field from ``given`` (keyword = field name; None = not given), else
+    from its ``COSIM5G_*`` variable, else its default. ValueError naming the variable, the value
+    and what is allowed, for a bad value."""
     try:
         return Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as exc:
@@ -70,5 +68,6 @@ def settings(**given: Any) -> Settings:
 
 
 def env_name(field: str) -> str:
-    """The variable of a field: ``COSIM5G_MAX_QUEUED``."""
+    """The environment variable of the settings field ``field``: ``max_queued`` ->
+    ``COSIM5G_MAX_QUEUED``."""
     return f"{PREFIX}{field.upper()}"

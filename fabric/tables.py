@@ -1,16 +1,8 @@
 """Result tables: records streamed to disk while a run goes, and Parquet files written atomically.
 
-A federate appends the rows of each of its tables to a part file
-``<run>/tables/<table>-<federate>.arrows`` (Arrow IPC stream format) in bounded record batches:
-a batch is written when it holds ``MAX_BATCH_ROWS`` rows and whenever the federate's simulated
-clock has moved ``FLUSH_EVERY_US`` past the last flush, so its memory stays flat however long the
-run is, and a federate that dies keeps every batch written before it died (a batch cut short by
-the death is dropped when the part is read). The coordinator merges the parts of each table into
-``<run>/<table>.parquet`` when the run ends (``coordinator.results.merge_tables``).
-
-The run's tables and their columns are fixed here (``TABLES``): a row with a column the table does
-not have is a bug and fails at once, and a table has the same columns whether or not any federate
-wrote a row to it.
+``TABLES`` fixes every table's columns; a federate streams its rows in bounded batches to an Arrow
+IPC part file, merged into ``<run>/<table>.parquet`` when the run ends (``TableWriter``,
+``merge_parts``; docs/architecture.md sec. 9, "Tables").
 """
 
 from __future__ import annotations
@@ -71,16 +63,19 @@ class TableError(ValueError):
 
 
 def part_path(results_dir: Path, table: str, federate: str) -> Path:
-    """Where ``federate`` streams its rows of ``table``."""
+    """Where ``federate`` streams its rows of ``table``:
+    ``<results_dir>/tables/<table>-<federate>.arrows``."""
     return results_dir / "tables" / f"{table}-{federate}{PART_SUFFIX}"
 
 
 class TableWriter:
     """Appends rows of one table to an Arrow IPC stream file, in batches of bounded size.
 
-    ``clock`` gives the simulated time the rows are recorded up to; each batch carries it so that
-    a reader can tell how far a federate's records go. ``close`` writes what is buffered and an
-    empty final batch marking the part as complete.
+    ``path``: the part file; ``schema``: the table's columns; ``name``: the table's name, for
+    errors; ``clock`` gives the simulated time, microseconds, the rows are recorded up to, which
+    each batch carries so that a reader can tell how far a federate's records go; ``max_rows``:
+    the rows of a batch. ``close`` writes what is buffered and an empty final batch marking the
+    part as complete.
     """
 
     def __init__(self, path: Path, schema: pa.Schema, name: str, clock: Callable[[], int],
@@ -104,7 +99,8 @@ class TableWriter:
         self.closed = False
 
     def append(self, row: dict[str, Any]) -> None:
-        """Buffer one row; writes a batch when ``max_rows`` are buffered."""
+        """Buffer ``row`` (column name -> value; a column left out is null); writes a batch when
+        ``max_rows`` are buffered."""
         if self._ncols:
             self.flush()  # rows given as columns go first, in their own batch
         self._rows.append(row)
@@ -112,8 +108,8 @@ class TableWriter:
             self.flush()
 
     def extend(self, rows: list[dict[str, Any]]) -> None:
-        """``append`` each row: the same batches (a write at every ``max_rows``), taken a slice
-        at a time rather than a row at a time."""
+        """``append`` each of ``rows``: the same batches (a write at every ``max_rows``), taken a
+        slice at a time rather than a row at a time."""
         if self._ncols and rows:
             self.flush()
         buf = self._rows
@@ -154,7 +150,8 @@ class TableWriter:
 
     def flush(self, upto_us: int | None = None, closing: bool = False) -> None:
         """Write the buffered rows as one batch (nothing when none are buffered), noting that the
-        records are complete up to ``upto_us`` (default: the clock)."""
+        records are complete up to ``upto_us``, simulated microseconds (default: the clock);
+        ``closing`` adds the empty batch that marks the part complete."""
         if self.closed:
             return
         meta = {"upto_us": str(self.clock() if upto_us is None else upto_us)}
@@ -197,7 +194,8 @@ class TableWriter:
         return pa.RecordBatch.from_arrays(arrays, schema=self.schema)
 
     def close(self, upto_us: int | None = None) -> None:
-        """Write what is buffered, mark the part complete and close the file."""
+        """Write what is buffered, mark the part complete up to ``upto_us`` (simulated
+        microseconds; default: the clock) and close the file; a second call does nothing."""
         if self.closed:
             return
         try:
@@ -209,6 +207,7 @@ class TableWriter:
 
     @property
     def buffered(self) -> int:
+        """Rows buffered, not yet written."""
         return len(self._rows) + self._ncols
 
 
@@ -223,8 +222,9 @@ class PartInfo:
 
 
 def read_part(path: Path, info: PartInfo | None = None) -> Iterator[pa.RecordBatch]:
-    """The record batches of a part file, in order; stops quietly at a batch cut short (the
-    writer died while writing it). ``info`` is filled in as batches are read."""
+    """The non-empty record batches of the part file ``path``, in order; stops quietly at a batch
+    cut short (the writer died while writing it). ``info``, if given, is filled in as batches are
+    read."""
     info = info if info is not None else PartInfo()
     try:
         reader = pa.ipc.open_stream(pa.memory_map(str(path)))
@@ -264,7 +264,8 @@ MERGE_ROW_GROUP_ROWS = 65_536
 
 def merge_parts(results_dir: Path, table: str, schema: pa.Schema | None = None) -> dict[str, Any]:
     """Merge the part files of ``table`` into ``<results_dir>/<table>.parquet`` (atomically, a
-    row group at a time, so memory stays flat), then remove the parts.
+    row group at a time, so memory stays flat), then remove the parts. ``schema``: the merged
+    file's columns (default: the table's in ``TABLES``).
 
     Returns ``{"rows": n, "parts": {federate: {"rows", "upto_s", "complete"[, "error"]}}}``. With no
     part files, an existing merged file is kept (merged before) and a missing one is written
@@ -306,7 +307,8 @@ def merge_parts(results_dir: Path, table: str, schema: pa.Schema | None = None) 
 
 
 def write_table(path: Path, rows: list[dict[str, Any]], schema: pa.Schema | None = None) -> Path:
-    """Write ``rows`` (dicts with the same keys) to Parquet at ``path`` atomically."""
+    """Write ``rows`` (dicts with the same keys) to Parquet at ``path`` atomically, with
+    ``schema`` if given (needed for the columns of an empty table); returns ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     if rows:
         table = pa.Table.from_pylist(rows, schema=schema)
@@ -326,7 +328,8 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 
 
 def write_json(path: Path, data: Any) -> Path:
-    """Write JSON atomically."""
+    """Write ``data`` as indented JSON with sorted keys to ``path`` atomically (a value JSON does
+    not know as its ``str``); returns ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")

@@ -1,11 +1,8 @@
 """The Bus over eclipse-zenoh: a client session for federates, a router session for the coordinator.
 
-Multicast scouting is off and endpoints are explicit, so runs on one host never find each
-other. Every publication uses congestion control BLOCK: a frame is never silently dropped.
-
-A peer that vanishes without closing its connection (a host or container gone, a network cut) is
-declared dead after ``LEASE_MS``, which withdraws its liveliness tokens: a shorter lease than
-zenoh's default 10 s lets a federate notice a lost coordinator, and leave, within 10 s.
+Scouting off and explicit endpoints, so runs on one host never find each other; every publication
+blocks under congestion, so a frame is never silently dropped (docs/architecture.md sec. 4). The
+lease after which a vanished peer counts as dead: ``session_config``.
 """
 
 from __future__ import annotations
@@ -24,7 +21,12 @@ CLOSE_DRAIN_S = 0.05  # see close()
 
 
 def session_config(mode: str, endpoint: str) -> zenoh.Config:
-    """A zenoh config: ``mode`` 'router' listens on ``endpoint``, 'client' connects to it."""
+    """A zenoh config: ``mode`` 'router' listens on ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``),
+    'client' or 'peer' connects to it; no multicast scouting, no shared memory, a lease of
+    ``LEASE_MS``. A peer that vanishes without closing its connection (a host or container gone,
+    a network cut) is declared dead after that lease, which withdraws its liveliness tokens: a
+    shorter lease than zenoh's default 10 s lets a federate notice a lost coordinator, and leave,
+    within 10 s."""
     if mode not in ("router", "client", "peer"):
         raise ValueError(f"zenoh mode {mode!r} is not one of router, client, peer")
     conf = zenoh.Config()
@@ -47,7 +49,8 @@ def session_config(mode: str, endpoint: str) -> zenoh.Config:
 
 
 class ZenohBus(Bus):
-    """A Bus backed by one zenoh session."""
+    """A Bus backed by one zenoh session, opened at once: ``mode`` 'client' (a federate)
+    connects to the router at ``endpoint``, 'router' (the coordinator) listens there."""
 
     def __init__(self, endpoint: str, mode: str = "client") -> None:
         self.endpoint = endpoint

@@ -1,11 +1,8 @@
 """The coordinator's REST API: the app, assembled from its routers (``interfaces.routes``), its
-front door (``interfaces.guard``), its limits and its metrics.
+front door (``interfaces.guard``), its limits (``LIMITS``) and its metrics.
 
-Runs and sweeps share one job service (``experiments.jobs``): one queue limit, one store, one
-pool of slots. Request bodies are validated by the same scenario and sweep schemas as the CLI;
-an invalid one gets a 422 listing each field and what is allowed. The settings' limits
-(``LIMITS``) bound what one request may ask for (422 or 413 naming the limit) and how much work
-may wait (429).
+Runs and sweeps share one job service; bodies are validated by the scenario and sweep schemas,
+limits give 422, 413 or 429 naming the limit: docs/architecture.md sec. 12.
 """
 
 from __future__ import annotations

@@ -1,12 +1,7 @@
-"""Who may use the coordinator's REST API: the bearer token, where it is kept, and where the API listens.
+"""Who may use the coordinator's REST API: the bearer token, its file, and where the API listens.
 
-One token per coordinator. It is taken from ``COSIM5G_TOKEN`` when set, else read from the token
-file, which the coordinator writes at its first start (random, mode 0600 in a 0700 folder, so
-only its owner reads it). Clients (``cosim5g submit``, ``interfaces.client``) find it the same
-way. The default file is ``results/auth/api-token`` relative to the working folder, the folder
-``make up`` and ``docker-compose.yml`` use; ``COSIM5G_TOKEN_FILE`` or ``--token-file`` move it.
-When a file is named that way and ``COSIM5G_TOKEN`` is set too, the file is made to hold that
-token: whoever reads the file (Prometheus, in compose) then agrees with the coordinator.
+``COSIM5G_TOKEN``, else the token file the coordinator writes at its first start (default
+``results/auth/api-token``), found the same way by clients: docs/docker.md, "Who may use the API".
 """
 
 from __future__ import annotations

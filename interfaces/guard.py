@@ -1,10 +1,8 @@
 """The API's front door: what every request passes before any route or parser sees it.
 
-In this order, each refusal costing no more than reading the request's head: a body declared
-larger than the limit (413), a missing or wrong token (401, also for paths no route serves),
-then the body read up to the limit (413 past it), refused if it nests deeper than
-``MAX_JSON_DEPTH`` (422), and handed on. Every answer carries
-``X-Content-Type-Options: nosniff``; the access log never shows a token given in a query.
+In order, each refusal costing no more than reading the request's head: body over the limit
+(413), token (401), body read up to the limit (413) and nested deeper than ``MAX_JSON_DEPTH``
+(422); docs/docker.md, "Who may use the API".
 """
 
 from __future__ import annotations

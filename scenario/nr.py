@@ -1,10 +1,8 @@
 """Configuration of the NR system-level cell (``NrConfig``), defaults = the study's calibration.
 
-The defaults reproduce the reference study's cell: 3.5 GHz, 15 kHz SCS, a 100 MHz TDD carrier
-treated as one wide carrier, 23 dBm at the gNB and the UE, 1x1 SISO, TR 38.901 InF-SL in the
-120 x 60 x 10 m hall. ``n_prb`` and the DL/UL symbol split of the self-contained slot are the
-calibration knobs; they are set so that the saturated uplink IP throughput of the reference
-layout (``netsim.standalone``) is about 178.6 Mbps (see docs/netsim.md, "Calibration").
+The defaults reproduce the reference study's cell (docs/netsim.md, "Configuration reference");
+``n_prb`` and the DL/UL symbol split of the slot are the calibration knobs, set for about
+178.6 Mbps of saturated uplink in the reference layout (docs/netsim.md, "Calibration").
 """
 
 from __future__ import annotations

@@ -1,20 +1,9 @@
-"""A thread that steps the world ahead while the group's thread processes the other members' events.
+"""Step-ahead threads: the world steps on while the group's thread processes other members' events.
 
-``mj_step`` releases the GIL, so a step in another thread runs on the second core. Either
-stepper runs only ``mj_step`` in its thread: the step's Python parts (the conveyor drive before it,
-seals and task checks after) run in the caller's thread, in ``start`` and ``wait`` (or ``poll``),
-and between the two the world's observations show the state as of ``start``
-(``World.hold_observations``), so the caller may read them while the step runs. The native
-stepper takes several steps a handover where nothing in Python has to run between them
-(``World.steps_alone``), doing their belt drive and holding each one's starting state itself.
-
-``NativeStepAhead`` (the default where the native build is fresh) runs ``mj_step`` in a thread of
-C code that never takes the GIL (``native_stepper.c``): a handover is a semaphore post
-and a wait, with no thread waiting for the GIL held by the other. ``StepAhead`` is the pure-Python
-way: a Python thread handed the step with two locks used as binary semaphores (``acquire`` waits
-in C with the GIL released and a ``release`` from the other thread wakes it); that thread must
-take the GIL from the busy group's thread around every step, so each handover costs the group's
-thread more.
+Only ``mj_step`` runs in the thread, a C one (``NativeStepAhead``) or a Python one handed each
+step with two locks used as binary semaphores (``StepAhead``); the step's Python parts run in the
+caller's. Why: docs/architecture.md sec. 3, "Groups"; what the caller observes meanwhile:
+docs/physics.md, "Belt, parts and outcomes".
 """
 
 from __future__ import annotations

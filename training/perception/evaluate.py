@@ -1,10 +1,8 @@
 """Accuracy and cost of a pose estimator on a rendered, labelled split (no torch needed).
 
-A part counts as in view when at least 80% of its top face's area is visible (not hidden by the
-arm or cut by the image border). It is detected when an estimate lies within ``GATE_M`` of its
-centre; the position error is the 3-D distance between the two. Estimates near no part in play
-are false positives. Latency is the CPU time of ``detect`` per frame on one thread (decoding the
-frame, common to every estimator, is timed apart).
+A part in view (top face at least 80% visible) is detected by an estimate within ``GATE_M`` of
+its centre; estimates near no part are false positives; cost is ``detect``'s CPU time per frame
+on one thread, decoding apart (docs/perception.md, "Accuracy and cost").
 """
 
 from __future__ import annotations

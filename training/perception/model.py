@@ -1,10 +1,6 @@
 """The pose network (torch): a tiny fully-convolutional centre-heatmap net (CenterNet-style).
 
-Input 5 x 90 x 160 (domain.pose_net.model_input), output 4 x 45 x 80: centre heatmap
-logit, sub-cell offset (x, y, in cells) and edge length / SIZE_SCALE_M. Encoder at strides 2 and
-4 of the input, dilated convolutions for context (a part must be told from the orange-lit arm
-or a part's shadow), one skip connection back to stride 2. 43 k parameters (a 177 kB ONNX
-file), about 66 M multiply-adds per frame: ~2.5 ms on one host core with ONNX Runtime.
+Input, output, layers and cost: docs/perception.md, "Training".
 """
 
 from __future__ import annotations

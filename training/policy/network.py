@@ -1,10 +1,6 @@
-"""The environment's network: frame latency and loss of a camera flow vs the cell's offered
-uplink load and the flow's latency budget, from the table measured on the NR cell model
-(data/network_table.json, made by ``python benchmarks/policy_network_table.py``).
-
-Between two measured loads every quantity is interpolated linearly; a latency is drawn by
-inverse-transform sampling of the interpolated quantile function. A budget that is not in the
-table takes the nearest one (no budget is its own column).
+"""The environment's network: frame latency and loss of a camera flow vs the cell's offered uplink
+load and the flow's latency budget, from data/network_table.json (docs/policy.md, "The
+environment", network model).
 """
 
 from __future__ import annotations
