@@ -19,6 +19,7 @@ from benchmarks.ticker import Ticker, context
 from coordinator.conductor import Conductor
 from coordinator.run import execute_run, free_port
 from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.driver import WindowDriver
 from fabric.zenoh_bus import ZenohBus
 from scenario.schema import load_scenario
 
@@ -32,7 +33,7 @@ def windows_in_memory(federates: int, windows: int) -> float:
     names = [f"f{i}" for i in range(federates)]
     feds = [Ticker(context(n, "bench", W, end), InMemoryBus(hub), W) for n in names]
     conductor = Conductor(InMemoryBus(hub), "bench", names, W, end)
-    threads = [threading.Thread(target=f.serve, daemon=True) for f in feds]
+    threads = [threading.Thread(target=WindowDriver(f).serve, daemon=True) for f in feds]
     for t in threads:
         t.start()
     conductor.wait_ready(10)

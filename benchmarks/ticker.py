@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from fabric.bus import Bus
+from fabric.driver import WindowDriver
 from fabric.federate import Federate, FederateContext
 from scenario.schema import parse_scenario
 
@@ -39,7 +40,7 @@ def main() -> int:
 
     bus = ZenohBus(endpoint)
     try:
-        return Ticker(context(name, run_id, int(window_us), int(end_us)), bus, int(window_us)).serve()
+        return WindowDriver(Ticker(context(name, run_id, int(window_us), int(end_us)), bus, int(window_us))).serve()
     finally:
         bus.close()
 

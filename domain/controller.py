@@ -1,21 +1,6 @@
-"""The pick-and-place controller the robot node runs (and the abstract loops reuse), for the 6-DOF
-arm of one cell.
-
-It keeps time-stamped object estimates from the Edge and predicts each object to the moment a
-command takes effect (delay-aware state correction: p + v * (t_act - t_capture)). It plans an
-intercept: the cup heads for where the part will be when the cup gets there, then matches the
-belt's velocity over the part (conveyor tracking) while it descends, opens the vacuum, lifts,
-carries the part to the platform, places it and comes back. Estimates older than
-``max_estimate_age_ms`` make the arm hold above the part instead of descending on a guess.
-
-Motion. The plan is a Cartesian setpoint for the cup (position and velocity) moved towards each
-phase's goal with a velocity feed-forward (the part's velocity while tracking), a speed limit
-(TCP 1 m/s) and an acceleration limit, so it is continuous in position and velocity. Every
-control period the setpoint goes through damped-least-squares IK (domain.kinematics,
-warm-started from the previous solution, tool pointing down), the joint step is scaled to the
-joint speed limit (180 deg/s), and the command adds velocity feed-forward for the servo lag:
-q_cmd = q + qdot * servo_lag_s.
-"""
+"""The pick-and-place controller of one cell's 6-DOF arm, which the robot node runs and the
+abstract loops reuse: delay-aware prediction of the Edge's estimates, intercept, conveyor
+tracking, a limited Cartesian setpoint through IK (docs/physics.md, "The controller")."""
 
 from __future__ import annotations
 
@@ -29,6 +14,7 @@ from domain import work_cell as g
 from domain.arm import HOME_Q, JOINT_SPEED_MAX_RAD_S, TCP_SPEED_MAX_M_S
 from domain.kinematics import ArmKinematics, norm
 from scenario.schema import RobotConfig
+from wire import bodies
 
 HOVER_M = 0.05  # cup clearance above a part's top while aligning over it
 SEAL_CLEARANCE_M = 0.004  # descend the cup lip to this above the expected top (seal band: 12 mm)
@@ -53,6 +39,8 @@ CONVERGE_TAU_S = 0.08  # time constant of the final convergence onto a goal (est
 
 
 class Phase(StrEnum):
+    """The controller's phases, in the order of a pick and place."""
+
     HOME = "home"
     APPROACH = "approach"
     DESCEND = "descend"
@@ -78,7 +66,9 @@ class PickController:
 
     ``step`` is ``plan`` (the state machine and the cup setpoint), the IK of the setpoint, then
     ``command`` (joint targets from the IK solution). Whoever drives many arms calls the three
-    itself, to solve the IK of all arms in one ``ArmKinematics.solve_many``."""
+    itself, to solve the IK of all arms in one ``ArmKinematics.solve_many``. ``cfg``: the
+    scenario's robot section; ``object_size_m``: the nominal part edge (m); ``servo_lag_s``: the
+    servos' lag (s)."""
 
     def __init__(self, cfg: RobotConfig, object_size_m: float, servo_lag_s: float) -> None:
         self.cfg = cfg
@@ -115,8 +105,9 @@ class PickController:
         self.ik_error_m = 0.0  # worst IK residual seen (m or rad), for diagnostics
 
     # ---- inputs -----------------------------------------------------------------------------
-    def on_estimate(self, tracks: list[dict]) -> None:
-        """Replace the known tracks by the Edge's latest list (id, t_us, p, v)."""
+    def on_estimate(self, tracks: list[bodies.Track]) -> None:
+        """Replace the known tracks by the Edge's latest list ``tracks`` (id, capture time t_us in
+        us, position p in m and velocity v in m/s in the cell frame)."""
         fresh = {}
         for tr in tracks:
             tid = int(tr["id"])
@@ -128,7 +119,8 @@ class PickController:
         self.tracks = fresh
 
     def on_state(self, q: list[float], gripped: bool) -> None:
-        """Measured joint positions (rad) and whether the cup holds a part."""
+        """Measured joint positions ``q`` (rad, six) and whether the cup holds a part
+        (``gripped``)."""
         self.q = np.asarray(q, dtype=float)
         self.gripped = bool(gripped)
         if not self.synced:  # start planning from where the arm really is
@@ -139,8 +131,9 @@ class PickController:
 
     # ---- prediction and target choice -----------------------------------------------------------
     def predict(self, track: Track, t_us: int) -> np.ndarray:
-        """Where the part is at ``t_us``. Parts ride the belt: only their motion in the belt
-        plane is extrapolated (a vertical velocity in an estimate is settling or noise)."""
+        """Where the part of ``track`` is at ``t_us`` (us; m, cell frame). Parts ride the belt:
+        only their motion in the belt plane is extrapolated (a vertical velocity in an estimate
+        is settling or noise)."""
         p = track.p.copy()
         if self.cfg.delay_compensation:
             p[:2] += track.v[:2] * ((t_us - track.t_us) / 1e6)
@@ -196,14 +189,16 @@ class PickController:
         self.bottom_since_us = None
 
     def step(self, now: int) -> tuple[np.ndarray, bool]:
-        """Joint targets (rad, six) and suction command for the current control period."""
+        """Joint targets (rad, six) and suction command for the control period starting at
+        ``now`` (us)."""
         self.plan(now)
         q, err = self.kin.solve(self.p_sp, self.rot, self.q_sp)
         return self.command(q, err), self.suction
 
     def plan(self, now: int) -> None:
         """Advance the state machine, the suction command and the cup setpoint ``p_sp`` (the pose
-        the IK then solves for, from ``q_sp``, with orientation ``rot``) one control period."""
+        the IK then solves for, from ``q_sp``, with orientation ``rot``) one control period, the
+        one starting at ``now`` (us)."""
         tip = self.kin.tcp_position(self.q)
         track = None
         if self.target is not None:
@@ -357,8 +352,8 @@ class PickController:
         self.p_sp += self.v_sp * dt
 
     def command(self, q: np.ndarray, err: float) -> np.ndarray:
-        """Joint targets from the setpoint's IK solution ``q`` (residual ``err``): joint speed
-        limit, servo-lag feed-forward."""
+        """Joint targets (rad) from the setpoint's IK solution ``q`` (rad; residual ``err``, m or
+        rad): joint speed limit, servo-lag feed-forward."""
         self.ik_error_m = max(self.ik_error_m, err)
         dq = q - self.q_sp
         limit = JOINT_SPEED_MAX_RAD_S * self.dt

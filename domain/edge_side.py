@@ -6,28 +6,29 @@ signalling to the gNB too) and the downlink packet that carries a pose or a QoS 
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from domain import work_cell as g
 from domain.codec import slot_after
 from domain.congestion import LoadControl, UplinkMonitor
 from domain.frame_model import load_frame_model
-from domain.policy import LearnedPolicy, LoopState, Qos, check_family, make_policy, step_up
+from domain.loop_state import LoopState
+from domain.policy import LearnedPolicy, Qos, check_family, make_policy, step_up
 from domain.policy_features import LIFTED_M, spawn_time_us
 from domain.safety_floor import FloorLimits, safety_floor
 from domain.tracker import Tracker
 from fabric import metrics
 from scenario.schema import EdgeConfig, PolicyConfig, RobotConfig, Scenario, WorkCellConfig
+from wire.bodies import Packet, Payload, QosCtl, QosSignal, Track
 
 # An unchanged QoS is signalled again this often: the downlink can lose it.
 QOS_REFRESH_US = 1_000_000
 
 
-def update_tracks(tracker: Tracker, capture_us: int, positions: list[np.ndarray]) -> list[dict] | None:
-    """Fold one frame's part positions into ``tracker``; the tracks to send the robot, or None
-    when an older frame finished after a newer one (its information is superseded)."""
+def update_tracks(tracker: Tracker, capture_us: int, positions: list[np.ndarray]) -> list[Track] | None:
+    """Fold the part positions ``positions`` (m, cell frame) of the frame captured at
+    ``capture_us`` (us) into ``tracker``; the tracks to send the robot, or None when an older
+    frame finished after a newer one (its information is superseded)."""
     if tracker.last_update_us is not None and capture_us < tracker.last_update_us:
         return None
     tracker.update(capture_us, positions)
@@ -37,12 +38,12 @@ def update_tracks(tracker: Tracker, capture_us: int, positions: list[np.ndarray]
 class CoDesign:
     """The co-design policy for a set of loops, and which QoS each camera was last told.
 
-    ``cell`` is the scenario's WorkCellConfig (a bare belt speed in m/s is accepted too: the cell
-    is then known by its speed only); ``loops`` is how many loops share the radio cell and
-    ``fps`` the cameras' frame rate; ``limits`` what the safety floor protects (None: the
-    scenario's defaults). Per loop it remembers when the newest part it has seen landed on the
-    belt, so that a policy knows when the next one is due, and it watches the uplink's frames
-    (``monitor``) for the floor's margins and the load control."""
+    ``cfg`` is the scenario's policy section, ``cell`` its WorkCellConfig (a bare belt speed in
+    m/s is accepted too: the cell is then known by its speed only); ``loops`` is how many loops
+    share the radio cell and ``fps`` the cameras' frame rate (frame/s); ``limits`` what the
+    safety floor protects (None: the scenario's defaults). Per loop it remembers when the newest
+    part it has seen landed on the belt, so that a policy knows when the next one is due, and it
+    watches the uplink's frames (``monitor``) for the floor's margins and the load control."""
 
     def __init__(self, cfg: PolicyConfig, cell: WorkCellConfig | float, loops: int = 1,
                  fps: float = 30.0, limits: FloorLimits | None = None) -> None:
@@ -69,11 +70,13 @@ class CoDesign:
 
     @classmethod
     def for_scenario(cls, sc: Scenario) -> CoDesign:
-        """The co-design of a scenario's loops: its policy, cell, loop count and camera rate."""
+        """The co-design of the loops of scenario ``sc``: its policy, cell, loop count and camera
+        rate."""
         return cls(sc.policy, sc.work_cell, sc.loops, sc.camera.fps, default_limits(sc.policy, sc))
 
     def state(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> LoopState:
-        """What the Edge knows of ``loop`` now."""
+        """What the Edge knows of ``loop`` at ``now_us`` (us): its ``tracker``'s tracks and when
+        its last frame arrived (``last_frame_us``, us; None: none yet)."""
         tracks = tracker.report(g.BELT_HALF_WIDTH)
         for tr in tracks:
             if tr["p"][2] <= g.BELT_TOP_Z + LIFTED_M:  # a part riding the belt: when it landed
@@ -86,9 +89,10 @@ class CoDesign:
                          self.monitor.estimate(loop))
 
     def decide(self, loop: int, now_us: int, tracker: Tracker, last_frame_us: int | None) -> Qos:
-        """The policy's QoS for ``loop`` from what the Edge knows of it now, bounded by the safety
-        floor and the load control (the first decision of a policy period folds
-        the uplink's last period into both first)."""
+        """The policy's QoS for ``loop`` from what the Edge knows of it at ``now_us`` (us; see
+        ``state`` for ``tracker`` and ``last_frame_us``), bounded by the safety floor and the
+        load control (the first decision of a policy period folds the uplink's last period into
+        both first)."""
         if now_us != self._period_us:
             self._period_us = now_us
             self.period(now_us)
@@ -98,8 +102,8 @@ class CoDesign:
         return qos
 
     def period(self, now_us: int) -> None:
-        """A new policy period: the uplink's last period folded into the cell's figures and the
-        load control."""
+        """A new policy period, starting at ``now_us`` (us): the uplink's last period folded into
+        the cell's figures and the load control."""
         queueing_s, loss = self.monitor.period(now_us)
         if self.load is not None:
             self.load.update(now_us, queueing_s, loss)
@@ -108,8 +112,8 @@ class CoDesign:
         metrics.QUEUEING_DELAY.set(queueing_s)
 
     def apply(self, state: LoopState, qos: Qos) -> Qos:
-        """``qos`` bounded by the safety floor and the load control, reduced to the ablation's
-        ``controls``."""
+        """``qos``, the policy's decision for the loop in ``state``, bounded by the safety floor
+        and the load control, reduced to the ablation's ``controls``."""
         pdp = bounded_pdp(state, qos.pdp, self.limits, self.load)
         if self.controls == "pdp":
             return Qos(pdp, None)
@@ -117,21 +121,21 @@ class CoDesign:
             return Qos(1.0, qos.pdb_us)
         return Qos(pdp, qos.pdb_us)
 
-    def signal(self, loop: int, qos: Qos, now_us: int) -> dict[str, Any] | None:
-        """The QoS message for the camera of ``loop`` if it must be sent now (changed, or not sent
-        for QOS_REFRESH_US), else None."""
+    def signal(self, loop: int, qos: Qos, now_us: int) -> QosSignal | None:
+        """The message telling the camera of ``loop`` its QoS ``qos`` if it must be sent at
+        ``now_us`` (us: changed, or not sent for QOS_REFRESH_US), else None."""
         last = self.sent.get(loop)
         if last is not None and last[0] == qos and now_us - last[1] < QOS_REFRESH_US:
             return None
         self.sent[loop] = (qos, now_us)
-        return {"type": "qos", "loop": loop, "pdp": qos.pdp, "pdb_us": qos.pdb_us}
+        return QosSignal(loop=loop, pdp=qos.pdp, pdb_us=qos.pdb_us)
 
 
 def bounded_pdp(state: LoopState, pdp: float, limits: FloorLimits | None, load: LoadControl | None) -> float:
-    """``pdp`` raised to the safety floor (``limits``; None: no floor) and to the load control's
-    fill (PDP 1 while the cell has headroom), then capped by its cap (None: neither). Past
-    capacity the cap wins: a floor raised by stale estimates must not feed the congestion that
-    made them stale."""
+    """``pdp`` of the loop in ``state`` raised to the safety floor (``limits``; None: no floor)
+    and to the fill of the load control ``load`` (PDP 1 while the cell has headroom), then capped
+    by its cap (None: neither). Past capacity the cap wins: a floor raised by stale estimates
+    must not feed the congestion that made them stale."""
     if limits is not None:
         pdp = max(pdp, safety_floor(state, limits))
     if load is not None:
@@ -156,17 +160,17 @@ def default_limits(cfg: PolicyConfig, sc: Scenario | None = None) -> FloorLimits
                        edge.policy_period_ms / 1000)
 
 
-def lower_layer_qos(loop: int, qos: Qos, now_us: int, cfg: PolicyConfig, slot_us: int) -> tuple[int, dict[str, Any]]:
-    """When, and with what, the gNB learns a loop's QoS with ``policy.signalling: lower``: a
-    MAC-level control message (the camera flow's budget) that reaches the scheduler
-    ``control_latency_us`` after the decision, at a slot boundary; sent alongside the camera's
-    QoS message."""
+def lower_layer_qos(loop: int, qos: Qos, now_us: int, cfg: PolicyConfig, slot_us: int) -> tuple[int, QosCtl]:
+    """When (us), and with what, the gNB learns the QoS ``qos`` of ``loop`` decided at
+    ``now_us`` (us) with ``policy.signalling: lower`` (``cfg``): a MAC-level control message (the
+    camera flow's budget) that reaches the scheduler ``control_latency_us`` after the decision,
+    at a boundary of the ``slot_us`` (us) slots; sent alongside the camera's QoS message."""
     ue = f"camera-{loop}"
     return (slot_after(now_us + cfg.control_latency_us, slot_us),
-            {"flow": f"{ue}/video", "ue": ue, "pdb_us": qos.pdb_us, "pdp": qos.pdp})
+            QosCtl(flow=f"{ue}/video", ue=ue, pdb_us=qos.pdb_us, pdp=qos.pdp))
 
 
-def downlink_packet(ue: str, what: str, size: int, dst: str, app: dict[str, Any]) -> dict[str, Any]:
-    """The body of a downlink packet to ``ue`` (flow ``ue/what``), delivered to ``dst``."""
-    return {"ue": ue, "dir": "dl", "flow": f"{ue}/{what}", "size": size, "dst": dst, "pdb_us": None,
-            "app": app}
+def downlink_packet(ue: str, what: str, size: int, dst: str, app: Payload) -> Packet:
+    """A downlink packet of ``size`` bytes to ``ue`` (flow ``ue``/``what``) carrying ``app``,
+    delivered to ``dst``."""
+    return Packet(ue=ue, direction="dl", flow=f"{ue}/{what}", size=size, dst=dst, pdb_us=None, app=app)

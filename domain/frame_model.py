@@ -1,20 +1,13 @@
-"""The abstract loops' model of a detailed loop's camera and estimator (docs/architecture.md sec. 6): compressed
-frame sizes and the pose estimator's error and misses, measured on real frames by
-``python -m training.measure_frames``. The platform ships the model of the default camera
-(``domain/data/frame_model.json``); a scenario whose camera differs in anything that shapes a
-compressed frame (``CAMERA_KEYS``) gets a model measured for its own settings on first use, kept
-in a cache (``cache_path``) and copied into each run's directory (``RUN_FILE``). A model is only
-ever used for the settings it was measured with: ``model_for`` refuses any other.
-
-Read by the abstract loops federate, the co-design policy's training environment and the
-benchmark that measures its network table; ``estimate`` applies the measured error to
-ground-truth part positions as the real estimator would report them.
-"""
+"""The abstract loops' model of a detailed loop's camera and estimator: compressed frame sizes
+and the estimator's error and misses, measured on real frames for one camera's settings
+(``CAMERA_KEYS``), shipped, cached or kept in a run's directory, and only ever used for those
+settings (docs/perception.md)."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from fabric.settings import settings as platform_settings
+from wire.bodies import Part
 
 PATH = Path(__file__).parent / "data" / "frame_model.json"
 RUN_FILE = "frame_model.json"  # in a run's directory: the model its abstract loops use
@@ -43,9 +37,10 @@ class FrameModel:
     miss_rate: float  # share of visible parts the estimator misses
     data: dict[str, Any]
 
-    def estimate(self, objects: list[dict[str, Any]], rng: np.random.Generator) -> list[np.ndarray]:
-        """The parts at capture (``objects``: ground truth, ``p`` each) as the estimator reports
-        them: each missed with the measured rate, the others off by the measured error."""
+    def estimate(self, objects: Sequence[Part], rng: np.random.Generator) -> list[np.ndarray]:
+        """The parts at capture (``objects``: ground truth, ``p`` each, m) as the estimator
+        reports them: each missed with the measured rate, the others off by the measured error
+        (drawn from ``rng``)."""
         out = []
         for obj in objects:
             if rng.random() < self.miss_rate:
@@ -73,17 +68,17 @@ def settings_match(model: FrameModel, settings: dict[str, Any]) -> bool:
 
 
 def cache_path(settings: dict[str, Any], root: Path | None = None) -> Path:
-    """Where the model measured for ``settings`` is cached (under ``root``, default
-    $COSIM5G_CACHE_DIR or ~/.cache/cosim5g)."""
+    """Where the model measured for ``settings`` (``camera_settings``) is cached (under
+    ``root``, default $COSIM5G_CACHE_DIR or ~/.cache/cosim5g)."""
     root = root or platform_settings().cache_dir or Path.home() / ".cache" / "cosim5g"
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
     return root / "frame-models" / f"{digest}.json"
 
 
 def find_model(settings: dict[str, Any], *candidates: Path) -> Path:
-    """The file of the frame model measured for ``settings``: the first of ``candidates``, the
-    cache and the shipped model that exists and matches; FrameModelMissing (naming the settings)
-    if none does."""
+    """The file of the frame model measured for ``settings`` (``camera_settings``): the first of
+    the files ``candidates``, the cache and the shipped model that exists and matches;
+    FrameModelMissing (naming the settings) if none does."""
     for path in (*candidates, cache_path(settings), PATH):
         if path.exists() and settings_match(load_frame_model(path), settings):
             return path
@@ -93,5 +88,6 @@ def find_model(settings: dict[str, Any], *candidates: Path) -> Path:
 
 
 def model_for(settings: dict[str, Any], *candidates: Path) -> FrameModel:
-    """The frame model measured for ``settings`` (see ``find_model``)."""
+    """The frame model measured for ``settings``, looked for in ``candidates`` first (see
+    ``find_model``)."""
     return load_frame_model(find_model(settings, *candidates))

@@ -1,10 +1,6 @@
-"""Co-design policies (docs/architecture.md sec. 7): from a loop's control state to its dynamic QoS (PDP_r, L_r).
-
-All policies share one interface so the Edge, the abstract loops and the training environment
-swap them by name: ``none`` (PDP 1, conventional URLLC), ``fixed`` (constant PDP), ``heuristic``
-(rules on the cell's kinematics and the tracker's uncertainty) and ``learned`` (a small network
-trained with deep RL, training/policy/, run with ONNX Runtime).
-"""
+"""Co-design policies: from a loop's control state (``LoopState``) to its dynamic QoS (PDP_r,
+L_r), one interface swapped by name: ``none``, ``fixed``, ``heuristic`` and ``learned`` (a small
+network trained with deep RL, run with ONNX Runtime) (docs/policy.md)."""
 
 from __future__ import annotations
 
@@ -18,44 +14,35 @@ import numpy as np
 
 from domain import policy_features as F
 from domain import work_cell as g
-from domain.congestion import IDLE_LINK, LinkEstimate
+from domain.loop_state import LoopState
 from domain.tracker import ACCEL_SD, GATE_M
 from scenario.schema import PolicyConfig
+from wire.bodies import Track
 
 MODEL_DIR = Path(__file__).parent / "models"
 DEFAULT_POLICY_MODEL = MODEL_DIR / "policy.onnx"
-TRAIN_COMMAND = "make train-policy (python -m training.policy.train)"
-
-
-@dataclass(frozen=True)
-class LoopState:
-    """What the Edge knows of a loop when the policy runs."""
-
-    now_us: int
-    tracks: list[dict]  # tracker report: id, t_us, p, v, sd
-    last_frame_us: int | None  # capture time of the last frame that arrived
-    belt_speed_m_s: float
-    object_period_s: float | None = None  # the cell's nominal time between parts, s
-    loops: int = 1  # loops sharing the radio cell (its load at PDP 1)
-    fps: float = 30.0  # camera frame rate
-    last_spawn_us: int | None = None  # when the newest part seen landed on the belt
-    object_jitter_s: float = 0.0  # the cell's spawn jitter (+-), s
-    link: LinkEstimate = IDLE_LINK  # the uplink's delay and loss as the Edge sees them
+TRAIN_COMMAND = "make train-policy (python tools/train_policy.py)"
 
 
 @dataclass(frozen=True)
 class Qos:
+    """A loop's QoS: ``pdp`` the probability (0-1) that the camera keeps a frame, ``pdb_us`` the
+    latency budget (us; None: none)."""
+
     pdp: float
     pdb_us: int | None
 
 
 class Policy:
+    """A co-design policy configured by a scenario's policy section ``cfg``."""
+
     name = "base"
 
     def __init__(self, cfg: PolicyConfig) -> None:
         self.cfg = cfg
 
     def decide(self, state: LoopState) -> Qos:
+        """The QoS of the loop in ``state``."""
         raise NotImplementedError
 
 
@@ -69,6 +56,8 @@ class NonePolicy(Policy):
 
 
 class FixedPolicy(Policy):
+    """The configured PDP and latency budget, whatever the state."""
+
     name = "fixed"
 
     def decide(self, state: LoopState) -> Qos:
@@ -86,7 +75,7 @@ PICK_TIME_S = 0.5  # the arm's alignment to sealed grip (the controller's GRASP_
 SD_LIMIT_M = GATE_M / 2  # a prediction this uncertain may match the wrong part
 
 
-def gate_time_s(track: dict, age_s: float) -> float:
+def gate_time_s(track: Track, age_s: float) -> float:
     """Time left (s) before the tracker's prediction of ``track``, its sd grown by the tracker's
     motion model over the estimate's age ``age_s``, leaves half the association gate."""
     return math.sqrt(2 * max(0.0, SD_LIMIT_M - track.get("sd", 0.0)) / ACCEL_SD) - age_s
@@ -98,9 +87,10 @@ def step_up(pdp: float) -> float:
 
 
 def pdp_for_deadline(deadline_s: float, fps: float, useful: float = 1.0, risk: float = MISS_RISK) -> float:
-    """The lowest PDP that brings a useful frame within ``deadline_s`` with probability 1 - risk,
-    when a kept frame is useful (arrives and shows the part) with probability ``useful``: each of
-    the ``deadline_s * fps`` captures is useful with PDP x useful, independently."""
+    """The lowest PDP that brings a useful frame within ``deadline_s`` (s) with probability
+    1 - ``risk``, when a kept frame is useful (arrives and shows the part) with probability
+    ``useful``: each of the ``deadline_s * fps`` captures (``fps`` in frame/s) is useful with
+    PDP x useful, independently."""
     n = deadline_s * fps
     if n <= 1.0:
         return 1.0
@@ -164,8 +154,9 @@ class HeuristicPolicy(Policy):
 
 class LearnedPolicy(Policy):
     """A small network trained with PPO in the single-loop environment of training/policy/, run
-    with ONNX Runtime on one thread. It maps ``policy_features.features(state)`` to one logit per
-    PDP level and per latency budget.
+    with ONNX Runtime on one thread, loaded from ``cfg.learned_model`` (default: the shipped
+    model). It maps ``policy_features.features(state)`` to one logit per PDP level and per
+    latency budget.
 
     The PDP is the mean level under the network's distribution (softmax of the PDP logits): the
     trained policy draws a level every period and the camera keeps each frame with that level,
@@ -204,7 +195,8 @@ class LearnedPolicy(Policy):
 
 
 def decode(logits: np.ndarray, pdp_levels: tuple[float, ...], budget_levels_ms: tuple[float, ...]) -> Qos:
-    """The QoS of the learned policy's output: mean PDP level, most likely budget."""
+    """The QoS of the learned policy's output ``logits`` (PDP logits, then budget logits) over
+    the levels ``pdp_levels`` and ``budget_levels_ms`` (ms): mean PDP level, most likely budget."""
     n = len(pdp_levels)
     z = logits[:n] - np.max(logits[:n])
     prob = np.exp(z) / np.exp(z).sum()
@@ -214,8 +206,9 @@ def decode(logits: np.ndarray, pdp_levels: tuple[float, ...], budget_levels_ms: 
 
 
 def check_family(info: dict[str, Any], path: Path, cell: Any) -> None:
-    """Refuse a work cell outside the family the learned policy at ``path`` was trained on (its
-    card's ``family`` ranges), naming the field, the cell's value and the family's range."""
+    """Refuse a work cell ``cell`` (a WorkCellConfig) outside the family the learned policy at
+    ``path`` was trained on (the ``family`` ranges of its card ``info``), naming the field, the
+    cell's value and the family's range."""
     family = info.get("family")
     if not family:
         raise ValueError(f"learned policy model card {path.with_suffix('.json')} names no training "
@@ -230,8 +223,9 @@ def check_family(info: dict[str, Any], path: Path, cell: Any) -> None:
 
 
 def load_model_card(path: Path) -> dict[str, Any]:
-    """The model card beside a learned policy (``policy.json`` for ``policy.onnx``), checked
-    against this code's observation; errors name the file and how to make it."""
+    """The model card beside the learned policy at ``path`` (``policy.json`` for
+    ``policy.onnx``), checked against this code's observation; errors name the file and how to
+    make it."""
     if not path.is_file():
         raise FileNotFoundError(f"learned policy model {path} not found; train it: {TRAIN_COMMAND}, "
                                 f"or set policy.learned_model to an exported model")
@@ -258,4 +252,5 @@ POLICIES: dict[str, type[Policy]] = {
 
 
 def make_policy(cfg: PolicyConfig) -> Policy:
+    """The policy a scenario's policy section ``cfg`` names, configured by it."""
     return POLICIES[cfg.name](cfg)

@@ -1,30 +1,17 @@
-"""The learned co-design policy's contract: its observation, built from a ``LoopState`` by the one
-function the training environment and the Edge both call, and its action sets.
-
-The observation is what the Edge knows of a loop, in units that carry across cells: for the two
-parts that need the arm first, where they are relative to the pick window (in window lengths and
-in seconds of belt travel), their measured speed, the tracker's position sd, the estimate's age;
-whether a part is lifted off the belt (the arm holds it: the only sign of the robot's phase the
-Edge sees); the age of the last frame; when the next part is due; the cell (belt speed, object
-period) and its load, as the Edge sees it: the smoothed queueing delay of every loop's frames.
-Every feature is scaled to a few units and clipped to [-OBS_LIMIT, OBS_LIMIT].
-
-A model records ``FEATURE_NAMES``, ``FEATURE_SET`` and the action levels it was trained with
-(policy.json); the learned policy refuses a model whose set differs, naming both, so changing a
-feature means retraining.
-"""
+"""The learned co-design policy's contract: its observation of a ``LoopState`` (``features``, the
+one function the training environment and the Edge both call, in units that carry across cells),
+named ``FEATURE_SET`` so that a model trained on another is refused, and its action sets
+(docs/policy.md, "Observation")."""
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from domain import work_cell as g
-
-if TYPE_CHECKING:
-    from domain.policy import LoopState
+from domain.loop_state import LoopState
+from wire.bodies import Track
 
 TRACK_SLOTS = 2  # parts described, most urgent first
 TRACK_FEATURES = ("present", "window_pos", "t_reach", "t_exit", "speed", "sd", "age")
@@ -57,9 +44,10 @@ def _clip(x: float) -> float:
     return float(min(OBS_LIMIT, max(-OBS_LIMIT, x)))
 
 
-def belt_tracks(state: LoopState) -> list[tuple[float, dict]]:
-    """Parts on the belt that the arm can still pick, as (predicted x now, track), most urgent
-    (furthest downstream) first. Lifted parts and parts past the window are left out."""
+def belt_tracks(state: LoopState) -> list[tuple[float, Track]]:
+    """Parts on the belt of the loop in ``state`` that the arm can still pick, as (predicted x
+    now, m, track), most urgent (furthest downstream) first. Lifted parts and parts past the
+    window are left out."""
     out = []
     for tr in state.tracks:
         age_s = (state.now_us - tr["t_us"]) / 1e6
@@ -71,15 +59,16 @@ def belt_tracks(state: LoopState) -> list[tuple[float, dict]]:
     return out
 
 
-def spawn_time_us(track: dict, belt_speed_m_s: float) -> int:
-    """When a tracked part landed on the belt, from its position and the belt speed."""
+def spawn_time_us(track: Track, belt_speed_m_s: float) -> int:
+    """When (us) the part of ``track`` landed on the belt, from its position and the belt speed
+    ``belt_speed_m_s`` (m/s)."""
     travel_s = (track["p"][0] - g.SPAWN_X) / max(belt_speed_m_s, MIN_SPEED_M_S)
     return int(track["t_us"] - max(0.0, travel_s) * 1e6)
 
 
 def next_part_s(state: LoopState) -> float:
-    """Seconds until the next part is due on the belt, from the newest part's spawn time and the
-    object period (negative: overdue; 0 when nothing is known)."""
+    """Seconds until the next part is due on the belt of the loop in ``state``, from the newest
+    part's spawn time and the object period (negative: overdue; 0 when nothing is known)."""
     if state.last_spawn_us is None:
         return 0.0
     period = state.object_period_s or DEFAULT_OBJECT_PERIOD_S

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 from domain import policy_features as F
 from domain import work_cell as g
-from domain.policy import PICK_TIME_S, LoopState, gate_time_s, pdp_for_deadline, step_up
+from domain.loop_state import LoopState
+from domain.policy import PICK_TIME_S, gate_time_s, pdp_for_deadline, step_up
 
 # How long before a part reaches the pick window the arm may start working on it (it waits at
 # the window's entry): from then on its estimate must stay fresh.
@@ -34,16 +35,17 @@ class FloorLimits:
 
 
 def next_part_earliest_us(state: LoopState) -> int | None:
-    """The earliest time the next part can land: the newest part's landing plus the object period
-    less its jitter (spawn times are drawn uniformly within +- jitter of the plan); None when
-    unknown."""
+    """The earliest time (us) the next part can land in the loop of ``state``: the newest part's
+    landing plus the object period less its jitter (spawn times are drawn uniformly within +-
+    jitter of the plan); None when unknown."""
     if state.last_spawn_us is None or state.object_period_s is None:
         return None
     return state.last_spawn_us + int((state.object_period_s - state.object_jitter_s) * 1e6)
 
 
 def safety_floor(state: LoopState, limits: FloorLimits) -> float:
-    """The floor on the PDP of the loop in ``state``, rounded up to PDP_STEP.
+    """The floor on the PDP of the loop in ``state``, protecting ``limits``, rounded up to
+    PDP_STEP.
 
     - every part the arm may work on within LEAD_S (and inside the window): a useful frame
       before its estimate's age would pass ``max_estimate_age_s``, counting the uplink delay and

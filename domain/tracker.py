@@ -1,15 +1,14 @@
-"""Constant-velocity Kalman tracking of the parts in one cell, stamped with capture time.
-
-Each track holds position and velocity (cell frame) and their covariance at the capture time of
-its last update; the robot predicts forward from there. Detections are associated to the nearest
-predicted track within a gate; unmatched detections start tracks; tracks unseen for too long end.
-"""
+"""Constant-velocity Kalman tracking of the parts in one cell, stamped with capture time: each
+track takes the nearest detection within a gate of its prediction, the detections left start
+tracks, and tracks unseen for too long end (docs/perception.md, "Tracking")."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+from wire.bodies import Track
 
 GATE_M = 0.08  # association gate around a predicted position
 MAX_SILENCE_US = 1_500_000  # a track with no detection this long is dropped
@@ -19,6 +18,9 @@ MEAS_SD_M = 0.004  # position measurement noise of the estimator
 
 @dataclass
 class KalmanTrack:
+    """One part's position and velocity (cell frame, m and m/s) and their covariance at the
+    capture time ``t_us`` (us) of its last update; the robot predicts forward from there."""
+
     track_id: int
     t_us: int
     x: np.ndarray  # [px, py, pz, vx, vy, vz]
@@ -26,15 +28,17 @@ class KalmanTrack:
     updates: int = 1
 
     def predicted(self, t_us: int) -> np.ndarray:
+        """The predicted position (m, cell frame) at ``t_us`` (us)."""
         return self.x[:3] + self.x[3:] * ((t_us - self.t_us) / 1e6)
 
     @property
     def position_sd_m(self) -> float:
+        """The position's standard deviation (m, root mean of the three axes' variances)."""
         return float(np.sqrt(np.trace(self.P[:3, :3]) / 3))
 
 
 class Tracker:
-    """Tracks of one cell."""
+    """Tracks of one cell; a new track starts at ``initial_velocity`` (m/s, cell frame)."""
 
     def __init__(self, initial_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         self.tracks: dict[int, KalmanTrack] = {}
@@ -43,7 +47,8 @@ class Tracker:
         self.last_update_us: int | None = None
 
     def update(self, t_us: int, positions: list[np.ndarray]) -> None:
-        """Fold in the parts seen in a frame captured at ``t_us`` (in capture order)."""
+        """Fold in the part positions ``positions`` (m, cell frame) seen in a frame captured at
+        ``t_us`` (us) (frames in capture order)."""
         self.last_update_us = t_us
         unmatched = list(range(len(positions)))
         for tr in sorted(self.tracks.values(), key=lambda t: t.track_id):
@@ -82,9 +87,10 @@ class Tracker:
         tr.t_us = t_us
         tr.updates += 1
 
-    def report(self, belt_half_width_m: float) -> list[dict]:
-        """Tracks over the belt as plain data for a pose packet."""
-        out = []
+    def report(self, belt_half_width_m: float) -> list[Track]:
+        """Tracks over the belt (within ``belt_half_width_m``, m, of its axis, plus a margin) as
+        plain data for a pose packet."""
+        out: list[Track] = []
         for tr in sorted(self.tracks.values(), key=lambda t: t.track_id):
             if abs(tr.x[1]) > belt_half_width_m + 0.05:
                 continue  # on the platform or in the gripper away from the belt

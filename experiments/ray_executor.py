@@ -1,15 +1,8 @@
-"""Points as Ray tasks, for sweeps over a cluster of machines.
+"""Points as Ray tasks, for sweeps over a cluster of machines (docs/architecture.md sec. 8).
 
-Each point is a Ray task that runs one ``cosim5g run`` process on whichever node Ray picks (the
-same process the local executor runs, so the same scenario and seed give the same results), packs
-the run directory and returns it; the driver unpacks it into the sweep directory, so the nodes
-need no shared file system. Every node needs this project installed in the Python that its Ray
-worker runs (``pip install -e '.[ray]'`` in the same checkout), and Docker too for points with
-``runtime: docker``.
-
-``address``: ``auto`` or ``HOST:PORT`` joins a running cluster (``ray start --head`` on one
-machine, ``ray start --address HOST:PORT`` on the others); None starts a local one-machine
-cluster for this sweep and stops it afterwards.
+Each point is one ``cosim5g run`` process, as with the local executor (same scenario and seed,
+same results), whose run directory comes back packed. ``address``: ``auto`` or ``HOST:PORT``
+joins a running cluster, None starts one on this machine for the sweep (README.md, "Sweeps").
 """
 
 from __future__ import annotations
@@ -26,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
-from experiments.executors import PointOutcome, PointTask, run_process
+from experiments.point_runs import PointOutcome, PointTask, run_process
 
 
 def run_remote(config_yaml: str, run_id: str) -> dict[str, Any]:

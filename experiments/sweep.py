@@ -1,9 +1,8 @@
 """The sweep engine: expand a spec into points, run those not yet completed, record each as it
 ends, add seeds where a grid point has too few tasks, and rebuild the report.
 
-One engine for every caller (CLI, REST API, policy evaluation); the executor decides where the
-points run. A sweep directory is its own state: running the engine again on it (``--resume``)
-skips every point whose key completed and reruns the others.
+One engine for every caller (CLI, REST API, policy evaluation). A sweep directory is its own
+state: running the engine on it again (``--resume``) reruns only the points not completed.
 """
 
 from __future__ import annotations
@@ -21,7 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
-from experiments.executors import Executor, PointOutcome, PointTask
+from experiments.executors import Executor
+from experiments.point_runs import PointOutcome, PointTask
 from experiments.points import Point, expand, make_point, write_point_config
 from experiments.records import SweepDir, flatten_kpis
 from experiments.report import rebuild

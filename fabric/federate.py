@@ -1,10 +1,9 @@
-"""The federate base: every federate's side of the window protocol (docs/architecture.md sec. 3).
+"""The federate base: the event model every federate runs (docs/architecture.md sec. 3 and 4).
 
-It waits for the messages counted in ``advance``, processes inputs and internal events in
-(t_us, source, seq) order up to the window's end, sends (a message inside the window is a
-``CausalityError``), replies ``done``, streams its records (``fabric.tables``), feeds its trace
-hash, and leaves when its coordinator's liveliness token is gone. A message it cannot handle
-fails it, naming the federate and the message kind.
+A window processes inputs and internal events in (t_us, source, seq) order up to its end, sends
+(a message inside the window is a ``CausalityError``), streams the records (``fabric.tables``)
+and feeds the trace hash; ``fabric.driver`` serves it the window protocol. A message it cannot
+handle fails it, naming the federate and the message kind.
 """
 
 from __future__ import annotations
@@ -12,32 +11,30 @@ from __future__ import annotations
 import hashlib
 import heapq
 import logging
-import os
-import queue
 import resource
 import sys
 import time
-import traceback
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import msgpack
+import msgspec
 
 from fabric import keys, metrics
 from fabric.bus import Bus
+from fabric.driver import WindowReport
 from fabric.messages import (
     BUNDLE,
     Advance,
-    Done,
+    Body,
+    Bundle,
     Message,
     MessageError,
-    Ready,
-    Stop,
     Stopped,
-    decode_data,
+    bundle_items,
     encode_batch,
 )
 from fabric.seeding import rng
@@ -56,14 +53,6 @@ class CausalityError(RuntimeError):
 
 class MessageRejected(ValueError):
     """A message the federate cannot handle: unexpected kind or malformed body."""
-
-
-EXIT_FAILED = 1
-EXIT_ORPHANED = 3  # the coordinator vanished: records written, nobody to report to
-# The coordinator's token must be seen this soon after connecting (it exists before any federate
-# starts); a federate that never sees it was started for a run that is already gone.
-COORDINATOR_WAIT_S = 10.0
-_POLL_S = 0.5
 
 
 def peak_rss_mb() -> float:
@@ -90,8 +79,13 @@ _MESSAGE = 1
 _LAST = "\uffff"  # sorts after every federate name
 
 
+# The body types a federate takes (``wire`` structs: each names its ``KIND``), each with its
+# handler, called with the decoded body and the message.
+Handlers = Mapping[type[Any], Callable[[Any, Message], None]]
+
+
 class Federate:
-    """Base class. Subclasses override ``setup``, ``on_message``, ``finish``; they schedule
+    """Base class. Subclasses override ``setup``, ``handlers``, ``finish``; they schedule
     internal events with ``schedule`` and send with ``send``; ``now`` is the current time."""
 
     role = "federate"
@@ -106,12 +100,6 @@ class Federate:
         self.now = 0
         self.window_end = 0
         self._heap: list[tuple[int, str, int, int, Any]] = []
-        self._inbox: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
-        # Received data messages counted by the window they were sent in: a message sent in the
-        # current window that overtakes a late one from an earlier window must not satisfy the
-        # barrier in its place.
-        self._received_settled = 0
-        self._received_by_window: Counter[int] = Counter()
         self._window = 0
         self._sent_to: Counter[str] = Counter()
         # Data messages sent in this window, per bus key, published as one batch per key when
@@ -129,12 +117,11 @@ class Federate:
         self._trace = hashlib.sha256()
         self._events = 0
         self._events_before = 0
-        self._stopped = False
         self._busy_s = 0.0  # wall time spent processing windows: where a slow run's time goes
         self._tables: dict[str, TableWriter] = {}
         self._job_nodes: list[ComputeNode] = []
         self._next_flush_us = FLUSH_EVERY_US
-        self._coordinator_seen = False
+        self._dispatch: dict[str, tuple[Callable[[Any], Any], type, Callable[[Any, Message], None]]] | None = None
         # Set by a ``fabric.group.FederateGroup`` hosting this federate: the names of the
         # federates it hosts, and how a message to one of them is handed over (the message
         # itself: it is encoded for the trace hash, never decoded; a sender does not touch a
@@ -144,16 +131,16 @@ class Federate:
         self.cohosted: frozenset[str] = frozenset()
         self.deliver_local: Callable[[Message], None] | None = None
         self.base_window_us = ctx.scenario.window_us
-        # Called (from any thread) when the coordinator is lost, with the reason: the process
-        # entry point arms a hard exit there, in case the federate is stuck in a window.
-        self.on_orphaned: Callable[[str], None] | None = None
 
     # ---- for subclasses -------------------------------------------------------------------
     def setup(self) -> None:
         """Heavy initialisation (models, renderers) before the federate reports ready."""
 
-    def on_message(self, msg: Message) -> None:
-        """Handle one data message at ``self.now == msg.t_us``."""
+    def handlers(self) -> Handlers:
+        """The body types this federate takes, each with its handler, called at
+        ``self.now == msg.t_us`` with the decoded body and the message (source, blob). A kind
+        not listed fails the federate, naming it."""
+        return {}
 
     def finish(self, reason: str) -> dict[str, Any]:
         """Append the last records; return a summary for the coordinator (numbers, strings)."""
@@ -269,9 +256,21 @@ class Federate:
         heapq.heappush(self._heap, (t_us, src, self._event_seq, _EVENT, (fn, args)))
         return t_us, src, self._event_seq
 
-    def send(self, dst: str, plane: str, kind: str, t_us: int, body: dict[str, Any] | None = None,
-             blob: bytes | None = None) -> None:
-        """Send a data message to ``dst`` to be delivered at ``t_us`` (>= end of this window)."""
+    def send(self, dst: str, t_us: int, body: Body, blob: bytes | None = None) -> None:
+        """Send ``body`` (a ``wire`` struct, which names its kind and plane) to ``dst``, delivered
+        at ``t_us`` (>= end of this window), with ``blob``: payload bytes, if any."""
+        self._send(dst, body.PLANE, body.KIND, t_us, body, blob)
+
+    def send_bundle(self, dst: str, t_us: int, bodies: list[Body]) -> None:
+        """Send several bodies without payload bytes to ``dst``, all delivered at ``t_us``, as one
+        message: the receiver handles them one by one, in this order, as if each had been sent on
+        its own (a cell delivering dozens of packets in one slot pays the per-message cost once)."""
+        if len(bodies) == 1:
+            self.send(dst, t_us, bodies[0])
+        elif bodies:
+            self._send(dst, bodies[0].PLANE, BUNDLE, t_us, Bundle([(b.KIND, b) for b in bodies]), None)
+
+    def _send(self, dst: str, plane: str, kind: str, t_us: int, body: Any, blob: bytes | None) -> None:
         local = self.deliver_local is not None and dst in self.cohosted
         end = (self.now // self.base_window_us + 1) * self.base_window_us if local else self.window_end
         if t_us < end:
@@ -280,7 +279,7 @@ class Federate:
                 f"{end} us (latency below the window)"
             )
         self._out_seq += 1
-        msg = Message(t_us, self.name, dst, self._out_seq, plane, kind, body or {}, blob, self._window)
+        msg = Message(t_us, self.name, dst, self._out_seq, plane, kind, body, blob, self._window)
         raw = msg.encode()
         self._trace.update(b"S")
         self._trace.update(raw)
@@ -299,15 +298,6 @@ class Federate:
         else:
             batch.append(raw)
 
-    def send_bundle(self, dst: str, plane: str, t_us: int, items: list[tuple[str, dict[str, Any]]]) -> None:
-        """Send several messages without payload bytes to ``dst``, all delivered at ``t_us``, as one: the
-        receiver handles them one by one, in this order, as if each had been sent on its own
-        (a cell delivering dozens of packets in one slot pays the per-message cost once)."""
-        if len(items) == 1:
-            self.send(dst, plane, items[0][0], t_us, items[0][1])
-        elif items:
-            self.send(dst, plane, BUNDLE, t_us, {"items": [[kind, body] for kind, body in items]})
-
     def flush_outbox(self) -> None:
         """Publish what was sent since the last flush: one bus message per destination key."""
         for key, raws in self._outbox.items():
@@ -320,125 +310,31 @@ class Federate:
             series.inc(n)
         self._sent_by_plane.clear()
 
-    # ---- protocol -----------------------------------------------------------------------------
-    def _enqueue(self, kind: str) -> Callable[[str, bytes], None]:
-        def put(key: str, payload: bytes) -> None:
-            self._inbox.put((kind, key, payload))
-
-        return put
-
-    def connect(self) -> None:
-        """Subscribe to the inbox and control keys and declare the liveliness token."""
-        run = self.ctx.run_id
-        for plane in self.data_planes:
-            self.bus.subscribe(keys.inbox(run, plane, self.name), self._enqueue("data"))
-        self.bus.subscribe(keys.advance(run), self._enqueue("advance"))
-        self.bus.subscribe(keys.stop(run), self._enqueue("stop"))
-        self.bus.watch_liveliness(keys.coordinator_alive(run), self._on_coordinator)
-        self.bus.declare_token(keys.alive(run, self.name))
-
-    def _on_coordinator(self, key: str, alive: bool) -> None:
-        if alive:
-            self._coordinator_seen = True
-        else:
-            self.abandon("the coordinator's liveliness token vanished (coordinator died or "
-                         "disconnected)")
-
-    def abandon(self, reason: str) -> None:
-        """Leave as soon as the current window is over: write the records, exit. Thread-safe
-        (called from transport threads and signal handlers)."""
-        self._inbox.put(("abandon", reason, b""))
-        if self.on_orphaned is not None:
-            self.on_orphaned(reason)
-
-    def serve(self) -> int:
-        """Run the federate until the coordinator stops it; returns a process exit code."""
-        try:
-            return self._serve()
-        finally:
-            self.close()
-
-    def _serve(self) -> int:
-        run = self.ctx.run_id
-        self.connect()
-        self.setup()
-        self.flush_outbox()
-        self.bus.publish(keys.ready(run, self.name), Ready(federate=self.name, pid=os.getpid()).encode())
-        pending: Advance | None = None
-        wait_until = time.monotonic() + COORDINATOR_WAIT_S
-        while True:
-            try:
-                kind, key, payload = self._inbox.get(timeout=_POLL_S)
-            except queue.Empty:
-                if not self._coordinator_seen and time.monotonic() > wait_until:
-                    self.abandon(f"no coordinator token ({keys.coordinator_alive(run)}) within "
-                                 f"{COORDINATOR_WAIT_S:.0f} s of connecting")
-                continue
-            if kind == "abandon":
-                return self._leave(key)
-            try:
-                if kind == "data":
-                    for msg in decode_data(payload):
-                        self.accept(msg)
-                        self._received_by_window[msg.window] += 1
-                elif kind == "advance":
-                    adv = Advance.decode(payload)
-                    if adv.federates is None or self.name in adv.federates:
-                        pending = adv
-                elif kind == "stop":
-                    stop = Stop.decode(payload)
-                    return self._stop(stop.reason, stop.t_us)
-            except (MessageError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
-                what = "data message" if kind == "data" else f"{kind} message"
-                return self._fail(pending, f"{self.name}: undecodable {what} on {key}: {exc}")
-            if pending is not None and self._received_before(pending.window) >= pending.expected_in.get(self.name, 0):
-                try:
-                    t0 = time.perf_counter()
-                    done = self.process_window(pending)
-                    self._busy_s += time.perf_counter() - t0
-                except Exception as exc:
-                    log.error("window %d failed:\n%s", pending.window, traceback.format_exc())
-                    return self._fail(pending, f"{type(exc).__name__}: {exc}")
-                self.bus.publish(keys.done(run, self.name), done.encode())
-                pending = None
-
-    def _fail(self, pending: Advance | None, error: str) -> int:
-        """Report ``error`` to the coordinator as this window's ``done``, keep the records."""
-        window = pending.window if pending is not None else self._window
-        t_end = pending.t_end_us if pending is not None else self.window_end
-        done = Done(federate=self.name, window=window, t_end_us=t_end, sent_to={}, next_event_us=None,
-                    earliest_sent_us=None, error=error)
-        self.bus.publish(keys.done(self.ctx.run_id, self.name), done.encode())
-        self._close_records()
-        return EXIT_FAILED
-
-    def _leave(self, reason: str) -> int:
-        """The coordinator is gone: write what was recorded up to now and exit."""
-        log.warning("%s leaves at %d us: %s", self.name, self.now, reason)
-        self._stop(f"coordinator lost: {reason}", self.now)
-        return EXIT_ORPHANED
-
-    def _received_before(self, window: int) -> int:
-        """Data messages received that were sent in windows before ``window``."""
-        for w in [w for w in self._received_by_window if w < window]:
-            self._received_settled += self._received_by_window.pop(w)
-        return self._received_settled
-
+    # ---- events ---------------------------------------------------------------------------------
     def accept(self, msg: Message) -> None:
         """Take a received data message: it is processed at its time, in (t_us, src, seq) order."""
         heapq.heappush(self._heap, (msg.t_us, msg.src, msg.seq, _MESSAGE, msg))
 
-    def process_window(self, adv: Advance) -> Done:
-        """Process every event with time < ``adv.t_end_us`` in order; the done report."""
+    def process_window(self, adv: Advance) -> WindowReport:
+        """Process every event with time < ``adv.t_end_us`` in order; the window's report."""
+        t0 = time.perf_counter()
         self.begin_window(adv)
         heap = self._heap
         while heap and heap[0][0] < adv.t_end_us:
             self.process_next()
         self.end_window(adv)
-        next_event = heap[0][0] if heap else None
-        return Done(federate=self.name, window=adv.window, t_end_us=adv.t_end_us,
-                    sent_to=dict(self._sent_to), next_event_us=next_event,
-                    earliest_sent_us=self._earliest_sent)
+        self._busy_s += time.perf_counter() - t0
+        return self.report()
+
+    def report(self) -> WindowReport:
+        """This window's report: what was sent, the next event (a federate alone promises no
+        horizon; a group makes its promise from its members', ``external_horizon_us``)."""
+        return WindowReport(sent_to=dict(self._sent_to), next_event_us=self._heap[0][0] if self._heap else None,
+                            earliest_sent_us=self._earliest_sent)
+
+    def add_busy(self, seconds: float) -> None:
+        """Count wall time spent on this federate's events (a group measures its members')."""
+        self._busy_s += seconds
 
     def begin_window(self, adv: Advance) -> None:
         self._window = adv.window
@@ -483,8 +379,23 @@ class Federate:
             self._next_flush_us = adv.t_end_us + FLUSH_EVERY_US
 
     def _handle(self, msg: Message) -> None:
+        dispatch = self._dispatch
+        if dispatch is None:
+            dispatch = self._dispatch = {
+                cls.KIND: (msgspec.msgpack.Decoder(cls).decode, cls, fn) for cls, fn in self.handlers().items()}
+        entry = dispatch.get(msg.kind)
+        if entry is None:
+            raise self.unexpected(msg)
+        decode, cls, fn = entry
+        body = msg.body
+        if not isinstance(body, cls):
+            try:
+                body = decode(body) if isinstance(body, msgspec.Raw) else msgspec.convert(body, cls)
+            except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                raise MessageRejected(f"{self.name}: malformed {msg.kind!r} message from {msg.src} at "
+                                      f"{msg.t_us} us: {exc}") from exc
         try:
-            self.on_message(msg)
+            fn(body, msg)
         except (CausalityError, MessageRejected):
             raise
         except Exception as exc:
@@ -494,12 +405,10 @@ class Federate:
 
     def _unbundle(self, bundle: Message) -> list[Message]:
         """The messages of a bundle (``send_bundle``), in sending order."""
-        items = bundle.body.get("items")
-        if not isinstance(items, list) or not all(
-                isinstance(i, list) and len(i) == 2 and isinstance(i[0], str) and isinstance(i[1], dict)
-                for i in items):
-            raise MessageRejected(f"{self.name}: malformed bundle from {bundle.src} at {bundle.t_us} us: "
-                                  "items must be [kind, body] pairs")
+        try:
+            items = bundle_items(bundle.body)
+        except MessageError as exc:
+            raise MessageRejected(f"{self.name}: {exc}, from {bundle.src} at {bundle.t_us} us") from exc
         return [Message(bundle.t_us, bundle.src, bundle.dst, bundle.seq, bundle.plane, kind, body,
                         None, bundle.window) for kind, body in items]
 
@@ -507,10 +416,8 @@ class Federate:
         """The error for a message of a kind this federate does not take."""
         return MessageRejected(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
 
-    def _stop(self, reason: str, t_us: int) -> int:
-        if self._stopped:
-            return 0
-        self._stopped = True
+    def stop(self, reason: str) -> list[Stopped]:
+        """Write the last records and summarise the run for the coordinator (``finish``)."""
         try:
             self.collect_records()
             summary = self.finish(reason)
@@ -522,10 +429,23 @@ class Federate:
         summary["cpu_s"] = round(time.process_time(), 3) if self.deliver_local is None else summary["busy_wall_s"]
         summary["peak_rss_mb"] = round(peak_rss_mb(), 1)
         summary["records"] = self.records_written()
-        record = Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
-                         summary=summary)
-        self.bus.publish(keys.stopped(self.ctx.run_id, self.name), record.encode())
-        return 0
+        return [Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
+                        summary=summary)]
+
+    # ---- as a participant of the window protocol (``fabric.driver``) ----------------------------
+    @property
+    def run_id(self) -> str:
+        return self.ctx.run_id
+
+    def hosted(self) -> list[Federate]:
+        return [self]
+
+    def culprit(self) -> str:
+        return self.name
+
+    def close_records(self) -> None:
+        """Write what is left and close every table (after a failure)."""
+        self._close_records()
 
     @property
     def trace_hash(self) -> str:

@@ -2,7 +2,7 @@
 ``core`` group; docs/architecture.md sec. 3, "Groups" and "Long windows").
 
 Members' events are merged, earliest first; a message between members is handed over in
-memory, timed as on the bus. The conductor sees one participant, whose ``done`` counts only
+memory, timed as on the bus. The conductor sees one participant, whose report counts only
 messages leaving the group and carries the group's horizon; members may work ahead in a
 background thread (``work_ahead``). Each member keeps its own records, trace and report.
 """
@@ -12,22 +12,24 @@ from __future__ import annotations
 import heapq
 import logging
 import time
-from typing import Any
+from collections.abc import Sequence
 
-from fabric import keys
-from fabric.federate import EXIT_FAILED, Federate, FederateContext, MessageRejected
-from fabric.messages import Advance, Done, Message
+from fabric.bus import Bus
+from fabric.driver import WindowReport
+from fabric.federate import Federate, FederateContext, MessageRejected
+from fabric.messages import Advance, Message, Stopped
 
 log = logging.getLogger(__name__)
 
 
-class FederateGroup(Federate):
+class FederateGroup:
     """Serves ``members`` (built on this group's bus) as the participant ``ctx.name``."""
 
-    role = "group"
-
-    def __init__(self, ctx: FederateContext, bus: Any, members: list[Federate]) -> None:
-        super().__init__(ctx, bus)
+    def __init__(self, ctx: FederateContext, bus: Bus, members: Sequence[Federate]) -> None:
+        self.name = ctx.name
+        self.run_id = ctx.run_id
+        self.bus = bus
+        self.base_window_us = ctx.scenario.window_us
         self.members = {m.name: m for m in members}
         names = frozenset(self.members)
         for m in members:
@@ -45,6 +47,13 @@ class FederateGroup(Federate):
     def _deliver_local(self, msg: Message) -> None:
         self.members[msg.dst].accept(msg)
 
+    # ---- as a participant of the window protocol (``fabric.driver``) ----------------------------
+    def hosted(self) -> list[Federate]:
+        return list(self.members.values())
+
+    def culprit(self) -> str:
+        return self._current.name if self._current is not None else self.name
+
     def accept(self, msg: Message) -> None:
         member = self.members.get(msg.dst)
         if member is None:
@@ -52,21 +61,11 @@ class FederateGroup(Federate):
         member.accept(msg)
         heapq.heappush(self._outside_pending, msg.t_us)
 
-    # ---- protocol -----------------------------------------------------------------------------
-    def connect(self) -> None:
-        run = self.ctx.run_id
-        for m in self.members.values():
-            for plane in m.data_planes:
-                self.bus.subscribe(keys.inbox(run, plane, m.name), self._enqueue("data"))
-            self.bus.declare_token(keys.alive(run, m.name))
-        self.bus.subscribe(keys.advance(run), self._enqueue("advance"))
-        self.bus.subscribe(keys.stop(run), self._enqueue("stop"))
-        self.bus.watch_liveliness(keys.coordinator_alive(run), self._on_coordinator)
-        self.bus.declare_token(keys.alive(run, self.name))
-
     def setup(self) -> None:
         for m in self.members.values():
+            self._current = m
             m.setup()
+        self._current = None
 
     def flush_outbox(self) -> None:
         for m in self.members.values():
@@ -79,7 +78,7 @@ class FederateGroup(Federate):
             except Exception:
                 log.exception("%s: closing %s failed", self.name, m.name)
 
-    def process_window(self, adv: Advance) -> Done:
+    def process_window(self, adv: Advance) -> WindowReport:
         members = list(self.members.values())
         t_end = adv.t_end_us
         base = self.base_window_us
@@ -106,54 +105,44 @@ class FederateGroup(Federate):
                     for plane in planes:
                         until = min(until, (o.next_send_us(plane, now) // base + 1) * base)
                 worker.work_ahead(until)
-            best._busy_s += time.perf_counter() - t0
+            best.add_busy(time.perf_counter() - t0)
         for m in members:
             self._current = m
             m.end_window(adv)
         self._current = None
-        self._window = adv.window
-        self.window_end = t_end
-        self.now = max(m.now for m in members)
+        return self._report(t_end)
+
+    def _report(self, t_end: int) -> WindowReport:
+        """The members' reports as one: messages leaving the group, and the group's horizon."""
+        reports = [m.report() for m in self.members.values()]
         sent: dict[str, int] = {}
-        for m in members:
-            for dst, n in m._sent_to.items():
+        for r in reports:
+            for dst, n in r.sent_to.items():
                 if dst not in self.members:
                     sent[dst] = sent.get(dst, 0) + n
-        earliest = [m._earliest_sent for m in members if m._earliest_sent is not None]
-        nexts = [k[0] for m in members if (k := m.next_event_key()) is not None]
-        horizons = [m.external_horizon_us() for m in members]
+        horizons = [m.external_horizon_us() for m in self.members.values()]
         horizon = None if None in horizons else min(h for h in horizons if h is not None)
         pending = self._outside_pending
         while pending and pending[0] < t_end:
             heapq.heappop(pending)
         if horizon is not None and pending:
             horizon = min(horizon, pending[0])
-        return Done(federate=self.name, window=adv.window, t_end_us=t_end, sent_to=sent,
-                    next_event_us=min(nexts, default=None), earliest_sent_us=min(earliest, default=None),
-                    horizon_us=horizon)
+        return WindowReport(
+            sent_to=sent,
+            next_event_us=min((r.next_event_us for r in reports if r.next_event_us is not None), default=None),
+            earliest_sent_us=min((r.earliest_sent_us for r in reports if r.earliest_sent_us is not None),
+                                 default=None),
+            horizon_us=horizon)
 
-    def _fail(self, pending: Advance | None, error: str) -> int:
-        """Report the failure under the name of the member that failed (if one did)."""
-        name = self._current.name if self._current is not None else self.name
-        window = pending.window if pending is not None else self._window
-        t_end = pending.t_end_us if pending is not None else self.window_end
-        done = Done(federate=name, window=window, t_end_us=t_end, sent_to={}, next_event_us=None,
-                    earliest_sent_us=None, error=error)
-        self.bus.publish(keys.done(self.ctx.run_id, self.name), done.encode())
-        self._close_records()
-        return EXIT_FAILED
-
-    def _stop(self, reason: str, t_us: int) -> int:
-        if self._stopped:
-            return 0
-        self._stopped = True
+    def stop(self, reason: str) -> list[Stopped]:
+        records = []
         for m in self.members.values():
             try:
-                m._stop(reason, t_us)
+                records += m.stop(reason)
             except Exception:
                 log.exception("%s: stopping %s failed", self.name, m.name)
-        return 0
+        return records
 
-    def _close_records(self, collect: bool = True, upto_us: int | None = None) -> None:
+    def close_records(self) -> None:
         for m in self.members.values():
-            m._close_records(collect, upto_us)
+            m.close_records()

@@ -1,17 +1,20 @@
 """Message schemas: the data envelope every federate exchanges and the control records.
 
-Data messages are a compact msgpack array (bulk payloads such as frames travel as raw bytes in
-``blob``); control messages are schema-versioned pydantic records serialised as msgpack. Every
-message carries its delivery time (integer microseconds), its source and a per-source sequence
-number, which together give the processing order (t_us, src, seq).
+Data messages are a compact msgpack array whose body is a typed struct (``wire``: fabric knows
+no body, only that it has a ``KIND`` and a ``PLANE``; a received body stays undecoded until its
+federate decodes it by kind); bulk payloads such as frames travel as raw bytes in ``blob``.
+Control messages are schema-versioned pydantic records serialised as msgpack. Every message
+carries its delivery time (integer microseconds), its source and a per-source sequence number,
+which together give the processing order (t_us, src, seq).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
 
 import msgpack
+import msgspec
 from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_VERSION = 1
@@ -21,9 +24,17 @@ class MessageError(ValueError):
     """A message that cannot be decoded or does not match its schema."""
 
 
+class Body(Protocol):
+    """What fabric needs of a data message's body: its kind and plane (``wire.bodies``)."""
+
+    KIND: ClassVar[str]
+    PLANE: ClassVar[str]
+
+
 @dataclass(slots=True)
 class Message:
-    """A data message between federates, delivered at ``t_us``."""
+    """A data message between federates, delivered at ``t_us``. ``body``: the sender's struct,
+    or, received from the bus, its undecoded bytes (``msgspec.Raw``)."""
 
     t_us: int
     src: str
@@ -31,66 +42,83 @@ class Message:
     seq: int
     plane: str
     kind: str
-    body: dict[str, Any] = field(default_factory=dict)
+    body: Any
     blob: bytes | None = None
     window: int = 0  # window in which it was sent: the barrier counts per sending window
 
     def encode(self) -> bytes:
-        return msgpack.packb(
-            [SCHEMA_VERSION, self.t_us, self.src, self.dst, self.seq, self.plane, self.kind,
-             self.body, self.blob, self.window],
-            use_bin_type=True,
-        )
+        return _encode([SCHEMA_VERSION, self.t_us, self.src, self.dst, self.seq, self.plane, self.kind,
+                        self.body, self.blob, self.window])
 
     @classmethod
     def decode(cls, raw: bytes) -> Message:
         try:
-            fields = msgpack.unpackb(raw, raw=False)
-        except Exception as exc:  # malformed bytes from the wire
-            raise MessageError(f"undecodable data message: {exc}") from exc
-        return cls.from_fields(fields)
-
-    @classmethod
-    def from_fields(cls, fields: Any) -> Message:
-        """The message of an unpacked envelope (the array ``encode`` packs)."""
-        try:
-            v, t_us, src, dst, seq, plane, kind, body, blob, window = fields
-        except (TypeError, ValueError) as exc:
+            v, t_us, src, dst, seq, plane, kind, body, blob, window = _decode_envelope(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as exc:  # malformed bytes from the wire
             raise MessageError(f"undecodable data message: {exc}") from exc
         if v != SCHEMA_VERSION:
             raise MessageError(f"data message schema v{v}, this build speaks v{SCHEMA_VERSION}")
-        if not isinstance(t_us, int) or not isinstance(seq, int):
-            raise MessageError("data message t_us and seq must be integers")
-        return cls(t_us, src, dst, seq, plane, kind, body or {}, blob, window)
+        return cls(t_us, src, dst, seq, plane, kind, body, blob, window)
 
+
+_Envelope = tuple[int, int, str, str, int, str, str, msgspec.Raw, bytes | None, int]
+_encode = msgspec.msgpack.Encoder().encode
+_decode_envelope = msgspec.msgpack.Decoder(_Envelope).decode
 
 # The kind of a data message that carries several messages for one destination and delivery
-# time (``Federate.send_bundle``): body ``{"items": [[kind, body], ...]}``, no blob.
+# time (``Federate.send_bundle``), each as [kind, body], no blob.
 BUNDLE = "bundle"
+
+
+class Bundle(msgspec.Struct):
+    """The body of a bundle: its messages' kinds and bodies, in sending order."""
+
+    KIND: ClassVar[str] = BUNDLE
+    items: list[tuple[str, Any]]
+
+
+class _RawBundle(msgspec.Struct):
+    items: list[tuple[str, msgspec.Raw]]
+
+
+_decode_raw_bundle = msgspec.msgpack.Decoder(_RawBundle).decode
+
+
+def bundle_items(body: Any) -> list[tuple[str, Any]]:
+    """The [kind, body] items of a bundle's body (sent in memory, or undecoded from the bus)."""
+    if isinstance(body, Bundle):
+        return body.items
+    try:
+        return list(_decode_raw_bundle(body).items)
+    except (msgspec.DecodeError, msgspec.ValidationError, TypeError) as exc:
+        raise MessageError(f"malformed bundle: {exc}") from exc
+
 
 # A batch: every data message one federate sent to one destination's inbox key in one window,
 # in sending order, as one bus message (the per-message cost of the bus is paid once a window).
 _BATCH = "batch"
+_decode_batch = msgspec.msgpack.Decoder(tuple[str, list[bytes]]).decode
+_BATCH_HEAD = 0x92  # a two-element msgpack array; a single message's envelope has ten
 
 
 def encode_batch(raws: list[bytes]) -> bytes:
     """One bus payload for several encoded data messages (a single message goes as it is)."""
     if len(raws) == 1:
         return raws[0]
-    return msgpack.packb([_BATCH, raws], use_bin_type=True)
+    return _encode([_BATCH, raws])
 
 
 def decode_data(payload: bytes) -> list[Message]:
     """The data messages of one bus payload: a single message or a batch."""
+    if payload[:1] != bytes((_BATCH_HEAD,)):
+        return [Message.decode(payload)]  # a single message, decoded once (a frame's blob is large)
     try:
-        head = msgpack.unpackb(payload, raw=False)
-    except Exception as exc:
+        tag, raws = _decode_batch(payload)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise MessageError(f"undecodable data message: {exc}") from exc
-    if isinstance(head, list) and len(head) == 2 and head[0] == _BATCH:
-        if not isinstance(head[1], list) or not all(isinstance(r, bytes) for r in head[1]):
-            raise MessageError("data batch must hold encoded messages")
-        return [Message.decode(raw) for raw in head[1]]
-    return [Message.from_fields(head)]  # a single message, unpacked once (a frame's blob is large)
+    if tag != _BATCH:
+        raise MessageError(f"undecodable data message: a batch tagged {tag!r}")
+    return [Message.decode(raw) for raw in raws]
 
 
 class ControlRecord(BaseModel):

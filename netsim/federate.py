@@ -1,9 +1,9 @@
 """The netsim federate: turns every IP packet handed to a modem into a delivery at a slot end (or a
 loss with its cause) using a cell model, and records every packet's fate.
 
-Packets arrive as ``packet`` messages whose body names the UE, direction, flow, size, the
-destination federate and the application record to deliver; the destination receives a message
-of kind ``app.type`` with the application record and the payload bytes. Packet records stream to
+Packets arrive as ``packet`` messages (``wire.bodies.Packet``) naming the UE, direction, flow,
+size, the destination federate and the application body to deliver; the destination receives
+that body, as a message of its own kind, with the packet's id and the payload bytes. Packet records stream to
 the ``packets`` table as packets are decided: nothing per packet is kept past its fate.
 """
 
@@ -13,8 +13,10 @@ import logging
 from collections import Counter
 from typing import Any
 
+from msgspec.structs import replace
+
 from fabric import metrics, native
-from fabric.federate import NEVER_US, Federate
+from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
 from netsim.nr.radio_cell import NrCell
 from netsim.radio_cell import (
@@ -28,6 +30,8 @@ from netsim.radio_cell import (
 )
 from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
+from wire import bodies
+from wire.bodies import QosCtl
 
 log = logging.getLogger(__name__)
 
@@ -104,51 +108,53 @@ class NetsimFederate(Federate):
                 horizon = min(horizon, at)
         return horizon
 
-    def on_message(self, msg: Message) -> None:
-        if msg.kind == "qos_ctl":
-            self._lower_layer_qos(msg.body)
-            return
-        if msg.kind not in ("packet", "packets"):
-            raise self.unexpected(msg)
+    def handlers(self) -> Handlers:
+        return {bodies.Packet: self._on_packet, bodies.Packets: self._on_packets, QosCtl: self._lower_layer_qos}
+
+    def _on_packet(self, p: bodies.Packet, msg: Message) -> None:
+        # A packet's ref: (destination, application body, payload bytes, index in its message
+        # or None); the delivered message's body is built from it at delivery.
+        pid = self._check_entry(p, msg)
+        self._enqueue_packets([Packet(pid, p.flow, p.ue, p.direction, p.size, msg.t_us, (p.dst, p.app, msg.blob, None))], p, msg.t_us)
+
+    def _on_packets(self, p: bodies.Packets, msg: Message) -> None:
+        # The packets of one application message (an abstract loop's frame): the same flow,
+        # entry slot and destination; each delivered with its index in ``app.idx``.
+        if msg.blob is not None:
+            raise ValueError("netsim: a packets message carries no payload bytes (send packet)")
+        pid = self._check_entry(p, msg)
+        self._enqueue_packets([Packet(pid + idx, p.flow, p.ue, p.direction, size, msg.t_us, (p.dst, p.app, None, idx))
+                       for idx, size in enumerate(p.sizes)], p, msg.t_us)
+
+    def _check_entry(self, p: bodies.Packet | bodies.Packets, msg: Message) -> int:
+        """Check a packet message's entry time, apply its flow's budget; the first packet id."""
         if msg.t_us % self.slot_us:
             raise ValueError(f"netsim: {msg.kind} from {msg.src} enters at {msg.t_us} us, not a slot boundary")
-        b = msg.body
-        flow = b["flow"]
-        pdb = b.get("pdb_us")
-        if self.flow_pdb.get(flow, "unset") != pdb:
-            self.flow_pdb[flow] = pdb
-            self.cell.set_flow_qos(flow, FlowQos(priority=5 if b["dir"] == "dl" else 10,
-                                                 delay_budget_us=None if pdb is None else int(pdb)))
-        ue, direction, t_us, dst, app = b["ue"], b["dir"], msg.t_us, b["dst"], b["app"]
-        pid = self.next_packet_id
-        # A packet's ref: (destination, application record, payload bytes, index in its
-        # message or None); the delivered message's body is built from it at delivery.
-        if msg.kind == "packet":
-            packets = [Packet(pid, flow, ue, direction, int(b["size"]), t_us, (dst, app, msg.blob, None))]
-        else:
-            # The packets of one application message (an abstract loop's frame): the same
-            # flow, entry slot and destination; each delivered with its index in ``app.idx``.
-            if msg.blob is not None:
-                raise ValueError("netsim: a packets message carries no payload bytes (send packet)")
-            packets = [Packet(pid + idx, flow, ue, direction, int(size), t_us, (dst, app, None, idx))
-                       for idx, size in enumerate(b["sizes"])]
-        self.next_packet_id = pid + len(packets)
+        pdb = p.pdb_us
+        if self.flow_pdb.get(p.flow, "unset") != pdb:
+            self.flow_pdb[p.flow] = pdb
+            self.cell.set_flow_qos(p.flow, FlowQos(priority=5 if p.direction == "dl" else 10,
+                                                   delay_budget_us=None if pdb is None else int(pdb)))
+        return self.next_packet_id
+
+    def _enqueue_packets(self, packets: list[Packet], p: bodies.Packet | bodies.Packets, t_us: int) -> None:
+        self.next_packet_id += len(packets)
         refused = self.cell.enqueue_many(packets)
         if refused:
             self._record(refused)
-        if dst not in self.cohosted:
-            self.outside_in_cell[ue, direction] += len(packets) - len(refused)
-        self._ensure_slot(msg.t_us)
+        if p.dst not in self.cohosted:
+            self.outside_in_cell[p.ue, p.direction] += len(packets) - len(refused)
+        self._ensure_slot(t_us)
 
-    def _lower_layer_qos(self, b: dict[str, Any]) -> None:
+    def _lower_layer_qos(self, b: QosCtl, msg: Message) -> None:
         """A loop's QoS signalled to the gNB (``policy.signalling: lower``): the flow's delay budget,
         and its UE weighed in the scheduler by the budget's urgency, the scenario's default budget
         over this one (a loop given half the usual budget counts twice in the PF ranking)."""
-        pdb = None if b["pdb_us"] is None else int(b["pdb_us"])  # FlowQos takes whole microseconds
+        pdb = None if b.pdb_us is None else int(b.pdb_us)  # FlowQos takes whole microseconds
         reference_us = self.scenario.policy.latency_budget_ms * 1000
         urgency = 1.0 if pdb is None else min(MAX_URGENCY, max(1.0 / MAX_URGENCY, reference_us / pdb))
-        self.flow_pdb[b["flow"]] = pdb
-        self.cell.set_flow_qos(b["flow"], FlowQos(priority=10, delay_budget_us=pdb, urgency=urgency), ue=b["ue"])
+        self.flow_pdb[b.flow] = pdb
+        self.cell.set_flow_qos(b.flow, FlowQos(priority=10, delay_budget_us=pdb, urgency=urgency), ue=b.ue)
 
     def _ensure_slot(self, t_us: int) -> None:
         if self.slot_scheduled is None:
@@ -182,7 +188,7 @@ class NetsimFederate(Federate):
         # The packets of one ``packets`` message delivered together are one item, at the place
         # of the last of them: the receiver acts when a frame's last packet is in, so it acts in
         # the same order as with an item a packet.
-        bundles: dict[tuple[str, int], list[tuple[str, dict[str, Any]] | None]] = {}
+        bundles: dict[tuple[str, int], list[bodies.Payload | None]] = {}
         places: dict[tuple[str, int], dict[int, int]] = {}  # per bundle: id(app) -> its item's index
         outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
@@ -200,34 +206,34 @@ class NetsimFederate(Federate):
                 items = bundles.setdefault(key, [])
                 place = places.setdefault(key, {})
                 at = place.get(id(app))
-                item: tuple[str, dict[str, Any]] | None
+                item: bodies.Payload | None
                 if at is None:
-                    item = (app["type"], {**app, "idx": [idx], "packet_ids": [outcome.packet.packet_id]})
+                    item = replace(app, idx=[idx], packet_ids=[outcome.packet.packet_id])
                 else:
                     item, items[at] = items[at], None
-                    assert item is not None
-                    item[1]["idx"].append(idx)
-                    item[1]["packet_ids"].append(outcome.packet.packet_id)
+                    assert isinstance(item, bodies.Aframe) and item.idx is not None and item.packet_ids is not None
+                    item.idx.append(idx)
+                    item.packet_ids.append(outcome.packet.packet_id)
                 place[id(app)] = len(items)
                 items.append(item)
                 continue
-            body = {**app, "packet_id": outcome.packet.packet_id}
+            body = replace(app, packet_id=outcome.packet.packet_id)
             if blob is None:
-                bundles.setdefault(key, []).append((app["type"], body))
+                bundles.setdefault(key, []).append(body)
                 continue
             for k in [k for k in bundles if k[0] == dst]:
                 self._send_items(dst, k[1], bundles.pop(k))
                 places.pop(k, None)
-            self.send(dst, "net", app["type"], outcome.deliver_us, body, blob)
+            self.send(dst, outcome.deliver_us, body, blob)
         for (dst, deliver_us), pending in bundles.items():
             self._send_items(dst, deliver_us, pending)
         self._publish_counts()
         if self.cell.has_pending():
             self._ensure_slot(self.now + self.slot_us)
 
-    def _send_items(self, dst: str, deliver_us: int, items: list[tuple[str, dict[str, Any]] | None]) -> None:
+    def _send_items(self, dst: str, deliver_us: int, items: list[bodies.Payload | None]) -> None:
         """Send a bundle's items, leaving out the places merged items moved from."""
-        self.send_bundle(dst, "net", deliver_us, [i for i in items if i is not None])
+        self.send_bundle(dst, deliver_us, [i for i in items if i is not None])
 
     def _record(self, outcomes: list[PacketOutcome]) -> None:
         """Count and record the fates of ``outcomes``. Latencies are slot multiples, so the

@@ -1,16 +1,8 @@
 """Entry point of every federate process: ``python -m services.main <role> --name ... ``.
 
-Connects to the run's zenoh router, builds the federate of the given role and serves the window
-protocol until the coordinator stops the run. Exit code 0 on a clean stop, 1 on a failure, 3 when
-the coordinator went away. The role ``group`` serves the federates named by ``--member NAME:ROLE``
-(repeated) together, as one participant (``fabric.group``).
-
-The process never outlives its coordinator, although it runs in a session of its own (so that
-stopping a run can signal its whole process group): the coordinator's liveliness token vanishing
-(both runtimes) or the death of the parent process (``prctl(PR_SET_PDEATHSIG)`` on Linux, when
-the coordinator started it directly and said so in ``COSIM5G_PARENT_PID``) makes the federate
-write its records and leave; SIGTERM does the same. Should it be stuck, it is ended
-``ORPHAN_GRACE_S`` later regardless.
+Serves one federate of ``role`` (for ``group``, the ``--member NAME:ROLE`` federates as one
+participant) until the coordinator stops the run; how it never outlives its coordinator, and its
+exit codes: docs/architecture.md sec. 10, "Nothing outlives its run".
 """
 
 from __future__ import annotations
@@ -26,7 +18,8 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
+from fabric.driver import EXIT_ORPHANED, Participant, WindowDriver
+from fabric.federate import FederateContext
 from fabric.heap import simulation_heap
 from fabric.settings import env_name, settings
 from scenario.schema import ScenarioError, load_scenario
@@ -64,7 +57,7 @@ class Lifeline:
 
     def __init__(self, grace_s: float = ORPHAN_GRACE_S) -> None:
         self.grace_s = grace_s
-        self.federate: Federate | None = None
+        self.driver: WindowDriver | None = None
         self.reason: str | None = None
         self._armed = threading.Lock()
 
@@ -78,18 +71,19 @@ class Lifeline:
         timer = threading.Timer(self.grace_s, os._exit, (EXIT_ORPHANED,))
         timer.daemon = True
         timer.start()
-        if self.federate is not None:
-            self.federate.abandon(reason)
+        if self.driver is not None:
+            self.driver.abandon(reason)
 
-    def attach(self, federate: Federate) -> None:
-        """From now on a loss makes ``federate`` leave; a loss before this ends the process."""
-        self.federate = federate
-        federate.on_orphaned = self.lost
+    def attach(self, driver: WindowDriver) -> None:
+        """From now on a loss makes ``driver``'s participant leave; a loss before this ends the
+        process."""
+        self.driver = driver
+        driver.on_orphaned = self.lost
         if self.reason is not None:
-            federate.abandon(self.reason)
+            driver.abandon(self.reason)
 
     def on_signal(self, signum: int, frame: FrameType | None) -> None:
-        if self.federate is None:  # nothing recorded yet: leave at once
+        if self.driver is None:  # nothing recorded yet: leave at once
             sys.exit(EXIT_ORPHANED)
         parent = settings().parent_pid
         if parent is not None and os.getppid() != parent:  # the parent-death signal
@@ -108,19 +102,19 @@ class Lifeline:
             self.lost(f"the coordinator (pid {expected}) exited before this federate started")
 
 
-def serve_profiled(fed: Federate, profile_dir: Path | None) -> int:
-    """Serve ``fed``; with ``profile_dir`` set, under cProfile, its statistics written to
-    ``<profile_dir>/<federate>.pstats`` when it leaves (``benchmarks.speed --profile``)."""
+def serve_profiled(driver: WindowDriver, profile_dir: Path | None) -> int:
+    """Serve ``driver``'s participant; with ``profile_dir`` set, under cProfile, its statistics
+    written to ``<profile_dir>/<participant>.pstats`` when it leaves (``benchmarks.speed --profile``)."""
     if profile_dir is None:
-        return fed.serve()
+        return driver.serve()
     import cProfile
 
     prof = cProfile.Profile()
     try:
-        return prof.runcall(fed.serve)
+        return prof.runcall(driver.serve)
     finally:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)
-        prof.dump_stats(str(Path(profile_dir) / f"{fed.name}.pstats"))
+        prof.dump_stats(str(Path(profile_dir) / f"{driver.participant.name}.pstats"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -153,19 +147,20 @@ def main(argv: list[str] | None = None) -> int:
 
     bus = ZenohBus(args.endpoint, mode="client")
     ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results))
-    fed: Federate
+    participant: Participant
     if args.role == "group":
         from fabric.group import FederateGroup
 
         members = [ROLES[r].federate_class()(FederateContext(name, args.run_id, scenario, Path(args.results)), bus)
                    for name, r in args.member]
-        fed = FederateGroup(ctx, bus, members)
+        participant = FederateGroup(ctx, bus, members)
     else:
-        fed = ROLES[args.role].federate_class()(ctx, bus)
-    lifeline.attach(fed)
+        participant = ROLES[args.role].federate_class()(ctx, bus)
+    driver = WindowDriver(participant)
+    lifeline.attach(driver)
     try:
         with simulation_heap():
-            code = serve_profiled(fed, settings().profile_dir)
+            code = serve_profiled(driver, settings().profile_dir)
     except Exception:
         logging.getLogger(args.name).exception("federate failed")
         code = 1

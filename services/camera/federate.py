@@ -14,8 +14,9 @@ import numpy as np
 from domain.codec import encode_frame, slot_after, split_packets
 from domain.sensor import sense, sensor_for
 from fabric.compute import ComputeNode
-from fabric.federate import Federate
+from fabric.federate import Federate, Handlers
 from fabric.messages import Message
+from wire.bodies import Frame, Image, Packet, QosSignal
 
 
 class CameraFederate(Federate):
@@ -36,26 +37,24 @@ class CameraFederate(Federate):
         self.sensor_rng = self.rng("sensor")
         cv2.setNumThreads(self.cpu.threads)  # OpenCV at the node's cores: one where cpus <= 1
 
-    def on_message(self, msg: Message) -> None:
-        if msg.kind == "frame":
-            self._on_frame(msg)
-        elif msg.kind == "qos":
-            self.pdp = float(msg.body["pdp"])
-            self.pdb_us = msg.body.get("pdb_us")
-        else:
-            raise self.unexpected(msg)
+    def handlers(self) -> Handlers:
+        return {Image: self._on_image, QosSignal: self._on_qos}
 
-    def _on_frame(self, msg: Message) -> None:
+    def _on_qos(self, qos: QosSignal, msg: Message) -> None:
+        self.pdp = float(qos.pdp)
+        self.pdb_us = qos.pdb_us
+
+    def _on_image(self, image: Image, msg: Message) -> None:
         sc = self.scenario
         fid = self.frame_id
         self.frame_id += 1
         keep = bool(self.keep_rng.random() < self.pdp)
-        row: dict[str, Any] = {"loop": self.loop, "frame_id": fid, "capture_us": msg.body["capture_us"],
+        row: dict[str, Any] = {"loop": self.loop, "frame_id": fid, "capture_us": image.capture_us,
                                "pdp": self.pdp, "kept": keep, "bytes": 0, "packets": 0, "ready_us": None}
         if not keep:
             self.frames.append(row)
             return
-        w, h = int(msg.body["w"]), int(msg.body["h"])
+        w, h = image.w, image.h
         blob = msg.blob or b""
         rgb = np.frombuffer(blob, np.uint8, w * h * 3).reshape(h, w, 3)
         depth = np.frombuffer(blob, np.uint16, w * h, w * h * 3).reshape(h, w)
@@ -69,7 +68,7 @@ class CameraFederate(Federate):
         self.frames.append(row)
         self.frames_kept += 1
         self.bytes_kept += len(data)
-        self.schedule(ready, self._transmit, fid, msg.body["capture_us"], data)
+        self.schedule(ready, self._transmit, fid, image.capture_us, data)
 
     def _transmit(self, fid: int, capture_us: int, data: bytes) -> None:
         sc = self.scenario
@@ -79,12 +78,11 @@ class CameraFederate(Federate):
         for idx, size in enumerate(sizes):
             chunk = data[offset:offset + size - 40]
             offset += len(chunk)
-            self.send("netsim", "net", "packet", enter, {
-                "ue": self.name, "dir": "ul", "flow": f"{self.name}/video", "size": size,
-                "dst": "edge", "pdb_us": self.pdb_us,
-                "app": {"type": "frame", "loop": self.loop, "frame_id": fid, "capture_us": capture_us,
-                        "idx": idx, "n": len(sizes)},
-            }, chunk)
+            self.send("netsim", enter, Packet(
+                ue=self.name, direction="ul", flow=f"{self.name}/video", size=size, dst="edge",
+                pdb_us=self.pdb_us,
+                app=Frame(loop=self.loop, frame_id=fid, capture_us=capture_us, idx=idx, n=len(sizes)),
+            ), chunk)
 
     def finish(self, reason: str) -> dict[str, Any]:
         kept = self.frames_kept

@@ -16,8 +16,9 @@ from domain.policy import Qos
 from domain.tracker import Tracker
 from domain.work_cell import CameraIntrinsics
 from fabric.compute import ComputeNode
-from fabric.federate import Federate
+from fabric.federate import Federate, Handlers
 from fabric.messages import Message
+from wire.bodies import Frame, Payload, Pose
 
 PARTIAL_FRAME_TIMEOUT_US = 500_000  # a frame missing packets this long is given up
 
@@ -46,17 +47,17 @@ class EdgeFederate(Federate):
         if self.loops:
             self.schedule(0, self._policy_tick)
 
-    def on_message(self, msg: Message) -> None:
-        if msg.kind != "frame":
-            raise self.unexpected(msg)
-        b = msg.body
-        key = (int(b["loop"]), int(b["frame_id"]))
+    def handlers(self) -> Handlers:
+        return {Frame: self._on_frame}
+
+    def _on_frame(self, frame: Frame, msg: Message) -> None:
+        key = (frame.loop, frame.frame_id)
         part = self.partial.get(key)
         if part is None:
-            part = self.partial[key] = {"n": int(b["n"]), "chunks": {}, "first_us": self.now,
-                                        "capture_us": int(b["capture_us"])}
+            part = self.partial[key] = {"n": frame.n, "chunks": {}, "first_us": self.now,
+                                        "capture_us": frame.capture_us}
             self.codesign.monitor.started(*key, self.now)
-        part["chunks"][int(b["idx"])] = msg.blob or b""
+        part["chunks"][frame.idx] = msg.blob or b""
         if len(part["chunks"]) == part["n"]:
             del self.partial[key]
             self.codesign.monitor.frame(key[0], part["capture_us"], self.now, key[1])
@@ -88,7 +89,7 @@ class EdgeFederate(Federate):
             return
         self.last_frame_us[loop] = capture_us
         self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
-                       {"type": "pose", "loop": loop, "tracks": tracks, "capture_us": capture_us})
+                       Pose(loop=loop, tracks=tracks, capture_us=capture_us))
 
     def _policy_tick(self) -> None:
         sc = self.scenario
@@ -106,10 +107,10 @@ class EdgeFederate(Federate):
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
-        self.send("netsim", "net", "qos_ctl", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
+        self.send("netsim", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
 
-    def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
-        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),
+    def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
+        self.send("netsim", slot_after(self.now, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, ue, app))
 
     def finish(self, reason: str) -> dict[str, Any]:

@@ -1,11 +1,8 @@
-"""The abstract loops (docs/architecture.md sec. 6): the N-K loops that are not rendered, in one process.
+"""The abstract loops: the N-K loops not rendered, in one process (docs/architecture.md sec. 6).
 
-Each abstract loop injects camera traffic with frame sizes drawn from a distribution measured on
-real compressed frames of the detailed camera, through netsim like any other loop; when netsim
-delivers a whole frame, its Edge side takes the ground-truth part poses at capture time plus the
-measured error of the real estimator, tracks them with the same tracker and sends the tracks
-downlink through netsim to a robot controller that is the same code as a detailed robot's. The
-same co-design policy sets its PDP. Compute times come from the node profiles' ``model`` draws.
+Their frames cross netsim like any loop's; their Edge side takes ground truth plus the real
+estimator's measured error, then the same tracker, policy and robot controller run; compute times
+are the profiles' ``model`` draws.
 """
 
 from __future__ import annotations
@@ -24,9 +21,21 @@ from domain.kinematics import ArmKinematics
 from domain.policy import Qos
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
-from fabric.federate import NEVER_US, Federate
+from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
 from fabric.tables import write_table
+from wire.bodies import (
+    Aframe,
+    Command,
+    Commands,
+    JointStates,
+    Packets,
+    Part,
+    Payload,
+    Pose,
+    QosSignal,
+    Truth,
+)
 
 
 @dataclass
@@ -43,7 +52,7 @@ class AbstractLoop:
     pdp: float = 1.0
     pdb_us: int | None = None
     frame_id: int = 0
-    truth: dict[int, tuple[int, list[dict]]] = field(default_factory=dict)  # frame -> (capture, objs)
+    truth: dict[int, tuple[int, list[Part]]] = field(default_factory=dict)  # frame -> (capture, objs)
     arrived: dict[int, int] = field(default_factory=dict)  # frame -> packets arrived
     last_frame_us: int | None = None
     frames: int = 0
@@ -91,26 +100,29 @@ class LoopsFederate(Federate):
         return NEVER_US if {"physics", "netsim"} <= self.cohosted else None
 
     # ---- messages -----------------------------------------------------------------------------
-    def on_message(self, msg: Message) -> None:
-        b = msg.body
-        if msg.kind == "joint_states":
-            for key, st in b["states"].items():
-                self.loops[int(key)].ctl.on_state(st["q"], st["gripped"])
-            return
-        lp = self.loops[int(b["loop"])]
-        if msg.kind == "truth":
-            self._camera_frame(lp, int(b["capture_us"]), b["objects"])
-        elif msg.kind == "aframe":
-            self._frame_packets(lp, int(b["frame_id"]), int(b["n"]), len(b["idx"]))
-        elif msg.kind == "pose":
-            lp.ctl.on_estimate(b["tracks"])
-        elif msg.kind == "qos":
-            lp.pdp, lp.pdb_us = float(b["pdp"]), b.get("pdb_us")
-        else:
-            raise self.unexpected(msg)
+    def handlers(self) -> Handlers:
+        return {JointStates: self._on_states, Truth: self._on_truth, Aframe: self._on_aframe,
+                Pose: self._on_pose, QosSignal: self._on_qos}
+
+    def _on_states(self, states: JointStates, msg: Message) -> None:
+        for key, st in states.states.items():
+            self.loops[int(key)].ctl.on_state(st["q"], st["gripped"])
+
+    def _on_truth(self, truth: Truth, msg: Message) -> None:
+        self._camera_frame(self.loops[truth.loop], truth.capture_us, truth.objects)
+
+    def _on_aframe(self, frame: Aframe, msg: Message) -> None:
+        self._frame_packets(self.loops[frame.loop], frame.frame_id, frame.n, len(frame.idx or ()))
+
+    def _on_pose(self, pose: Pose, msg: Message) -> None:
+        self.loops[pose.loop].ctl.on_estimate(pose.tracks)
+
+    def _on_qos(self, qos: QosSignal, msg: Message) -> None:
+        lp = self.loops[qos.loop]
+        lp.pdp, lp.pdb_us = float(qos.pdp), qos.pdb_us
 
     # ---- camera side ----------------------------------------------------------------------------
-    def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[dict]) -> None:
+    def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[Part]) -> None:
         lp.frames += 1
         if not lp.keep_rng.random() < lp.pdp:
             return
@@ -132,10 +144,10 @@ class LoopsFederate(Federate):
         lp.bytes_sent += sum(packets)
         # One message for the frame's packets: they share the flow, the entry slot and the
         # destination, and no payload bytes travel for an abstract loop.
-        self.send("netsim", "net", "packets", enter, {
-            "ue": ue, "dir": "ul", "flow": f"{ue}/video", "sizes": packets, "dst": self.name,
-            "pdb_us": lp.pdb_us, "app": {"type": "aframe", "loop": loop, "frame_id": fid, "n": len(packets)},
-        })
+        self.send("netsim", enter, Packets(
+            ue=ue, direction="ul", flow=f"{ue}/video", sizes=packets, dst=self.name, pdb_us=lp.pdb_us,
+            app=Aframe(loop=loop, frame_id=fid, n=len(packets)),
+        ))
 
     # ---- edge side ------------------------------------------------------------------------------
     def _frame_packets(self, lp: AbstractLoop, fid: int, n: int, count: int) -> None:
@@ -164,7 +176,7 @@ class LoopsFederate(Federate):
             return
         lp.last_frame_us = capture_us
         self._downlink(f"robot-{loop}", "pose", self.scenario.edge.pose_packet_bytes,
-                       {"type": "pose", "loop": loop, "tracks": tracks})
+                       Pose(loop=loop, tracks=tracks))
 
     def _policy_tick(self) -> None:
         sc = self.scenario
@@ -184,10 +196,10 @@ class LoopsFederate(Federate):
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
-        self.send("netsim", "net", "qos_ctl", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
+        self.send("netsim", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
 
-    def _downlink(self, ue: str, what: str, size: int, app: dict[str, Any]) -> None:
-        self.send("netsim", "net", "packet", slot_after(self.now, self.scenario.netsim.slot_us),
+    def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
+        self.send("netsim", slot_after(self.now, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, self.name, app))
 
     # ---- robot side -----------------------------------------------------------------------------
@@ -201,7 +213,7 @@ class LoopsFederate(Federate):
             # time it keeps for information covers the plan only.
             _, ready = lp.robot_cpu.run("control", self.now, lp.ctl.plan, self.now)
             latest = max(latest, ready)
-        commands = []
+        commands: list[Command] = []
         if ctls:
             qs, errs = self.kin.solve_many(np.array([c.p_sp for c in ctls]), ctls[0].rot,
                                            np.array([c.q_sp for c in ctls]))
@@ -209,7 +221,7 @@ class LoopsFederate(Federate):
                 commands.append({"loop": lp.index, "q": lp.ctl.command(q, err).tolist(),
                                  "suction": bool(lp.ctl.suction)})
         # One message for all arms: they share the latest compute completion of this tick.
-        self.send("physics", "act", "command", latest + sc.robot.actuation_latency_us, {"commands": commands})
+        self.send("physics", latest + sc.robot.actuation_latency_us, Commands(commands))
         nxt = self.now + sc.robot.control_period_us
         self.next_tick_us = nxt if nxt < sc.duration_us else NEVER_US
         if nxt < sc.duration_us:

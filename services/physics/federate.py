@@ -15,9 +15,10 @@ import numpy as np
 
 from domain.sensor import frame_offset_us, sensor_depth_mm
 from domain.world import World, spawn_plan
-from fabric.federate import NEVER_US, Federate
+from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
 from services.physics.stepper import Stepper, step_ahead
+from wire.bodies import Commands, Image, JointState, JointStates, Truth
 
 log = logging.getLogger(__name__)
 
@@ -130,16 +131,15 @@ class PhysicsFederate(Federate):
             rgb, depth = self.world.render(loop, sc.camera.width_px, sc.camera.height_px)
             assert depth is not None
             depth_mm = sensor_depth_mm(depth, sc.camera.depth_noise_mm, self.noise_rng)
-            self.send(f"camera-{loop}", "sense", "frame", deliver,
-                      {"loop": loop, "capture_us": self.now, "w": rgb.shape[1], "h": rgb.shape[0],
-                       "truth": self.world.objects(loop)},
+            self.send(f"camera-{loop}", deliver,
+                      Image(loop=loop, capture_us=self.now, w=rgb.shape[1], h=rgb.shape[0],
+                            truth=self.world.objects(loop)),
                       rgb.tobytes() + depth_mm.tobytes())
             self.frames_sent += 1
             if loop == 0 and not self.snapshot_saved and self.world.objects(0) and self.now > 2_000_000:
                 self._save_snapshot(rgb)
         else:
-            self.send("loops", "sense", "truth", deliver,
-                      {"loop": loop, "capture_us": self.now, "objects": self.world.objects(loop)})
+            self.send("loops", deliver, Truth(loop=loop, capture_us=self.now, objects=self.world.objects(loop)))
         nxt = self.now + self.frame_period
         if nxt < sc.duration_us:
             key = self.schedule(nxt, self._frame, loop)
@@ -152,11 +152,11 @@ class PhysicsFederate(Federate):
         sc = self.scenario
         deliver = self.now + sc.robot.state_latency_us
         for i in self.detailed:
-            self.send(f"robot-{i}", "sense", "joint_state", deliver,
-                      {"loop": i, "t_us": self.now, **self.world.joint_state(i)})
+            arm = self.world.joint_state(i)
+            self.send(f"robot-{i}", deliver, JointState(loop=i, t_us=self.now, q=arm["q"], gripped=arm["gripped"]))
         if self.abstract:
-            self.send("loops", "sense", "joint_states", deliver,
-                      {"t_us": self.now, "states": {str(i): self.world.joint_state(i) for i in self.abstract}})
+            self.send("loops", deliver,
+                      JointStates(t_us=self.now, states={str(i): self.world.joint_state(i) for i in self.abstract}))
         nxt = self.now + sc.robot.control_period_us
         if nxt < sc.duration_us:
             self.schedule(nxt, self._publish_states)
@@ -174,11 +174,12 @@ class PhysicsFederate(Federate):
         heapq.heappush(self._changes, (msg.t_us, msg.src, msg.seq))
         super().accept(msg)
 
-    def on_message(self, msg: Message) -> None:
-        if msg.kind != "command":
-            raise self.unexpected(msg)
-        for cmd in msg.body["commands"]:
-            self.world.command(int(cmd["loop"]), cmd["q"], bool(cmd["suction"]))
+    def handlers(self) -> Handlers:
+        return {Commands: self._on_commands}
+
+    def _on_commands(self, commands: Commands, msg: Message) -> None:
+        for cmd in commands.commands:
+            self.world.command(cmd["loop"], cmd["q"], cmd["suction"])
 
     def _save_snapshot(self, rgb: np.ndarray) -> None:
         out = self.results_dir / "frames"

@@ -1,14 +1,9 @@
-"""Pick-and-place loops closed without a network, for tests and benchmarks of the physics and the
-controller: every cell of a ``World`` is driven by the real ``PickController``, fed the
-ground-truth part poses (position and velocity) of each camera frame through an idealised
-channel with a fixed delay and independent frame loss. Optionally the poses take the abstract
-loops' path instead: ground-truth positions plus Gaussian estimator error, tracked by the Edge's
-Kalman tracker (which then supplies the velocity).
+"""Pick-and-place loops closed without a network, to test and benchmark the physics and controller.
 
-Everything else follows the federation: parts arrive by the physics federate's spawn plan
-(same named random streams, so the same parts at the same times), cameras capture at the
-federate's per-loop phases, joint states and commands take the configured local-wire latencies,
-the controller runs every control period. No netsim, no rendering, no estimator.
+Each cell's real ``PickController`` gets each camera frame's ground-truth part poses after a fixed
+delay, frames lost independently, or by the abstract loops' path (Gaussian error, the Edge's
+Kalman tracker). Spawns, camera phases, local wires and control periods are the federation's
+(same named streams); no netsim, no rendering, no estimator.
 """
 
 from __future__ import annotations

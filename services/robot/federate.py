@@ -10,8 +10,9 @@ from typing import Any
 from domain.arm import SERVO_LAG_S
 from domain.controller import PickController
 from fabric.compute import ComputeNode
-from fabric.federate import Federate
+from fabric.federate import Federate, Handlers
 from fabric.messages import Message
+from wire.bodies import Commands, JointState, Pose
 
 
 class RobotFederate(Federate):
@@ -26,20 +27,21 @@ class RobotFederate(Federate):
         self.estimates = 0
         self.schedule(0, self._tick)
 
-    def on_message(self, msg: Message) -> None:
-        if msg.kind == "pose":
-            self.ctl.on_estimate(msg.body["tracks"])
-            self.estimates += 1
-        elif msg.kind == "joint_state":
-            self.ctl.on_state(msg.body["q"], msg.body["gripped"])
-        else:
-            raise self.unexpected(msg)
+    def handlers(self) -> Handlers:
+        return {Pose: self._on_pose, JointState: self._on_state}
+
+    def _on_pose(self, pose: Pose, msg: Message) -> None:
+        self.ctl.on_estimate(pose.tracks)
+        self.estimates += 1
+
+    def _on_state(self, state: JointState, msg: Message) -> None:
+        self.ctl.on_state(state.q, state.gripped)
 
     def _tick(self) -> None:
         sc = self.scenario
         (q, suction), ready = self.cpu.run("control", self.now, self.ctl.step, self.now)
-        self.send("physics", "act", "command", ready + sc.robot.actuation_latency_us,
-                  {"commands": [{"loop": self.loop, "q": [float(v) for v in q], "suction": bool(suction)}]})
+        self.send("physics", ready + sc.robot.actuation_latency_us,
+                  Commands([{"loop": self.loop, "q": [float(v) for v in q], "suction": bool(suction)}]))
         nxt = self.now + sc.robot.control_period_us
         if nxt < sc.duration_us:
             self.schedule(nxt, self._tick)

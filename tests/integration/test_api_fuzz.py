@@ -27,7 +27,7 @@ from schemathesis.specs.openapi.checks import (  # noqa: E402
 )
 
 from coordinator.run import RunResult  # noqa: E402
-from experiments.executors import PointTask  # noqa: E402
+from experiments.point_runs import PointTask  # noqa: E402
 from fabric.settings import settings as platform_settings  # noqa: E402
 from interfaces.api import create_app  # noqa: E402
 from scenario.schema import Scenario  # noqa: E402

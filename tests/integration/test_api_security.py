@@ -26,7 +26,7 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
 from coordinator.run import RunResult
-from experiments.executors import PointTask
+from experiments.point_runs import PointTask
 from fabric.settings import settings
 from interfaces.api import create_app
 from interfaces.auth import TokenError, listen_sockets, server_token, token_matches

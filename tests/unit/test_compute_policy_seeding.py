@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from domain.policy import LoopState, make_policy
+from domain.loop_state import LoopState
+from domain.policy import make_policy
 from fabric.compute import ComputeNode
 from fabric.host_speed import HostScore, reference
 from fabric.seeding import rng

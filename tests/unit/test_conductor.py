@@ -5,17 +5,29 @@ from __future__ import annotations
 import random
 import threading
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any, ClassVar
 
+import msgspec
 import pytest
 
 from coordinator.conductor import Conductor, RunFailed
 from fabric.bus import InMemoryBus, InMemoryHub
+from fabric.driver import WindowDriver
 from fabric.federate import CausalityError, Federate, FederateContext
 from fabric.messages import Message
 from scenario.schema import parse_scenario
 
 W = 1000
+
+
+class Ping(msgspec.Struct):
+    """The test federates' message body."""
+
+    KIND: ClassVar[str] = "ping"
+    PLANE: ClassVar[str] = "sense"
+    k: int = 0
 
 
 class Pinger(Federate):
@@ -35,9 +47,12 @@ class Pinger(Federate):
         self.log.append((self.now, self.name, -1, "tick"))
         for peer in self.peers:
             for k in range(3):  # several messages with equal time: seq must order them
-                self.send(peer, "sense", "ping", self.now + self.latency, {"k": k})
+                self.send(peer, self.now + self.latency, Ping(k))
 
-    def on_message(self, msg: Message) -> None:
+    def handlers(self) -> Mapping[type, Callable[[Any, Message], None]]:
+        return {Ping: self.on_ping}
+
+    def on_ping(self, ping: Ping, msg: Message) -> None:
         self.log.append((msg.t_us, msg.src, msg.seq, msg.kind))
 
 
@@ -50,7 +65,7 @@ def federation(tmp_path: Path, hub: InMemoryHub, ticks: dict[str, list[int]], la
         ctx = FederateContext(n, "t1", sc, tmp_path)
         feds[n] = Pinger(ctx, InMemoryBus(hub), [p for p in names if p != n], ticks[n], latency_us)
     conductor = Conductor(InMemoryBus(hub), "t1", names, W, end_us, window_timeout_s=5)
-    threads = [threading.Thread(target=f.serve, daemon=True) for f in feds.values()]
+    threads = [threading.Thread(target=WindowDriver(f).serve, daemon=True) for f in feds.values()]
     for t in threads:
         t.start()
     conductor.wait_ready(5)
@@ -111,7 +126,7 @@ def test_federates_with_nothing_to_do_sit_windows_out(tmp_path: Path) -> None:
             "p": fed("p", ["b"], list(range(0, 20_000, 5000))),
             "b": fed("b", [], []), "quiet": fed("quiet", [], [])}
     conductor = Conductor(InMemoryBus(hub), "t1", sorted(feds), W, 20_000, window_timeout_s=5)
-    threads = [threading.Thread(target=f.serve, daemon=True) for f in feds.values()]
+    threads = [threading.Thread(target=WindowDriver(f).serve, daemon=True) for f in feds.values()]
     for t in threads:
         t.start()
     conductor.wait_ready(5)
@@ -158,7 +173,7 @@ def test_sending_inside_the_window_is_a_causality_error(tmp_path: Path) -> None:
     fed = Federate(FederateContext("a", "t1", sc, tmp_path), InMemoryBus(hub))
     fed.window_end = 5000
     with pytest.raises(CausalityError, match="inside the window"):
-        fed.send("b", "sense", "x", 4999)
+        fed.send("b", 4999, Ping())
 
 
 def test_silent_federate_fails_the_window(tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ A new federate class joins with one line in ``CASES``, naming a function that gi
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import queue
 import random
@@ -27,16 +28,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
+from test_conductor import Ping
 
 from domain.codec import encode_frame, split_packets
 from domain.frame_model import PATH as FRAME_MODEL
 from domain.frame_model import RUN_FILE, camera_settings
-from fabric import federate as federate_mod
+from fabric import driver as driver_mod
 from fabric import keys
 from fabric.bus import InMemoryBus, InMemoryHub
-from fabric.federate import EXIT_ORPHANED, Federate, FederateContext
+from fabric.driver import EXIT_ORPHANED, WindowDriver, WindowReport
+from fabric.federate import Federate, FederateContext
 from fabric.messages import Advance, Done, Message, Stop, Stopped, decode_data
 from fabric.tables import PartInfo, read_part
 from netsim.federate import NetsimFederate
@@ -109,7 +113,7 @@ def camera_inputs(sc: Scenario) -> list[Input]:
     out = []
     for k, t in enumerate(frame_times(sc, 2000)):
         rgb, depth = synthetic_frame(sc, k)
-        out.append(Input(t, "physics", "sense", "frame",
+        out.append(Input(t, "physics", "sense", "image",
                          {"loop": 0, "capture_us": t - 2000, "w": rgb.shape[1], "h": rgb.shape[0],
                           "truth": []}, rgb.tobytes() + depth.tobytes()))
     out.append(Input(70_000, "netsim", "net", "qos",
@@ -268,7 +272,7 @@ class ScriptedConductor:
         return lambda key, payload: self.control.put((what, payload))
 
     def _serve(self) -> None:
-        self.result.exit_code = self.fed.serve()
+        self.result.exit_code = WindowDriver(self.fed).serve()
 
     def _wait(self, what: str) -> bytes:
         while True:
@@ -338,7 +342,7 @@ class ScriptedConductor:
                 nexts.append(pending[i].t_us)
             t_start = min(nexts) // W * W if nexts else END_US
         self.result.windows = k
-        self.result.outputs = [(m.t_us, m.src, m.dst, m.seq, m.plane, m.kind, m.body, m.blob)
+        self.result.outputs = [(m.t_us, m.src, m.dst, m.seq, m.plane, m.kind, msgspec.msgpack.decode(m.body), m.blob)
                                for m in self.sent]
         return self.result
 
@@ -466,9 +470,9 @@ def test_it_leaves_with_its_records_when_the_coordinator_vanishes(case: Case, tm
 
 def test_a_federate_that_never_sees_a_coordinator_leaves(tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(federate_mod, "COORDINATOR_WAIT_S", 0.2)
+    monkeypatch.setattr(driver_mod, "COORDINATOR_WAIT_S", 0.2)
     fed = Federate(FederateContext("lonely", RUN, tiny_scenario(), tmp_path), InMemoryBus(InMemoryHub()))
-    assert fed.serve() == EXIT_ORPHANED
+    assert WindowDriver(fed).serve() == EXIT_ORPHANED
 
 
 class HidesItsNextEvent(Federate):
@@ -478,11 +482,11 @@ class HidesItsNextEvent(Federate):
         self.schedule(W, self.tick)
 
     def tick(self) -> None:
-        self.send("netsim", "net", "packet", self.now + W)
+        self.send("netsim", self.now + W, Ping())
         self.schedule(self.now + 5 * W, self.tick)
 
-    def process_window(self, adv: Advance) -> Done:
-        return super().process_window(adv).model_copy(update={"next_event_us": None})
+    def process_window(self, adv: Advance) -> WindowReport:
+        return dataclasses.replace(super().process_window(adv), next_event_us=None)
 
 
 def test_the_suite_catches_a_federate_that_hides_its_next_event(tmp_path: Path) -> None:

@@ -8,14 +8,15 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_conductor import Pinger, W
+from test_conductor import Ping, Pinger, W
 
 from coordinator.conductor import Conductor, RunFailed
 from fabric import keys
 from fabric.bus import InMemoryBus, InMemoryHub
-from fabric.federate import NEVER_US, Federate, FederateContext
+from fabric.driver import Participant, WindowDriver, WindowReport
+from fabric.federate import NEVER_US, FederateContext
 from fabric.group import FederateGroup
-from fabric.messages import Advance, Done, Message
+from fabric.messages import Advance, Message
 from scenario.schema import parse_scenario
 
 TICKS = {"a": [0, 3000, 7000, 20_000], "b": [0, 5000, 5000], "c": [2000, 9000], "d": [1000, 30_000]}
@@ -86,7 +87,7 @@ def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
     feds = {n: kind(FederateContext(n, "t1", sc, tmp_path / n), InMemoryBus(hub),
                     (peers or {}).get(n, [p for p in names if p != n]), TICKS[n], latency_us)
             for n in names}
-    serving: list[Federate] = [f for n, f in feds.items() if n not in grouped]
+    serving: list[Participant] = [f for n, f in feds.items() if n not in grouped]
     groups = {}
     if grouped:
         group_bus = InMemoryBus(hub)
@@ -99,7 +100,7 @@ def run(tmp_path: Path, grouped: list[str], latency_us: int = W,
     participants = sorted([n for n in names if n not in grouped] + (["g"] if grouped else []))
     conductor = Conductor(InMemoryBus(hub), "t1", participants, W, 50_000, window_timeout_s=5, groups=groups,
                           long_window_us=20 * W)
-    threads = [threading.Thread(target=f.serve, daemon=True) for f in serving]
+    threads = [threading.Thread(target=WindowDriver(f).serve, daemon=True) for f in serving]
     for t in threads:
         t.start()
     conductor.wait_ready(5)
@@ -167,9 +168,9 @@ def test_a_message_from_outside_bounds_the_horizon_until_it_is_processed(tmp_pat
     member = Promising(FederateContext("a", "t1", sc, tmp_path / "a"), bus, [], [], W)
     group = FederateGroup(FederateContext("g", "t1", sc, tmp_path / "g"), bus, [member])
     group.setup()
-    group.accept(Message(7 * W, "d", "a", 0, "sense", "ping"))
+    group.accept(Message(7 * W, "d", "a", 0, "sense", "ping", Ping()))
 
-    def window(i: int, start: int, end: int) -> Done:
+    def window(i: int, start: int, end: int) -> WindowReport:
         return group.process_window(Advance(window=i, t_start_us=start, t_end_us=end, expected_in={}))
 
     assert window(0, 0, W).horizon_us == 7 * W

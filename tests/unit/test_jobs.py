@@ -13,9 +13,10 @@ import pytest
 
 from coordinator.run import RunResult
 from experiments import executors
-from experiments.executors import LocalExecutor, PointOutcome, PointTask
+from experiments.executors import LocalExecutor
 from experiments.job_store import JobKind, JobStore
 from experiments.jobs import JobService, TooMuchWork
+from experiments.point_runs import PointOutcome, PointTask
 from experiments.slots import POINT_PRIORITY, RUN_PRIORITY, Slots
 from scenario.schema import Scenario, load_scenario
 

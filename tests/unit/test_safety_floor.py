@@ -21,7 +21,8 @@ from domain.congestion import (
     UplinkMonitor,
 )
 from domain.edge_side import CoDesign, bounded_pdp
-from domain.policy import LoopState, Qos, pdp_for_deadline
+from domain.loop_state import LoopState
+from domain.policy import Qos, pdp_for_deadline
 from domain.safety_floor import FloorLimits, next_part_earliest_us, safety_floor
 from domain.tracker import Tracker
 from scenario.schema import PolicyConfig, WorkCellConfig

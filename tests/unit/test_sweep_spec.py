@@ -250,7 +250,7 @@ def test_bad_variants_are_named() -> None:
 
 
 def test_a_series_stops_after_its_loads_fail_and_larger_loads_are_not_run(tmp_path: Path) -> None:
-    from experiments.executors import PointOutcome, PointTask
+    from experiments.point_runs import PointOutcome, PointTask
     from experiments.sweep import Sweep
 
     # Success by (policy, loops): `none` fails from 6 loops, `heuristic` never in this grid.

@@ -15,6 +15,7 @@ import pytest
 from fabric import tables
 from fabric.bus import InMemoryBus, InMemoryHub
 from fabric.compute import JobRecord
+from fabric.driver import WindowDriver
 from fabric.federate import Federate, FederateContext
 from fabric.tables import (
     PACKETS,
@@ -202,7 +203,7 @@ def test_a_federate_flushes_every_few_simulated_seconds(tmp_path: Path) -> None:
     fed = Counter(FederateContext("netsim", "t1", sc, tmp_path), InMemoryBus(hub))
     end_us = tables.FLUSH_EVERY_US + 500_000
     conductor = Conductor(InMemoryBus(hub), "t1", ["netsim"], 1000, end_us, window_timeout_s=10)
-    thread = threading.Thread(target=fed.serve, daemon=True)
+    thread = threading.Thread(target=WindowDriver(fed).serve, daemon=True)
     thread.start()
     conductor.wait_ready(10)
     conductor.run()

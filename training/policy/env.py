@@ -1,33 +1,8 @@
 """One co-design control loop as a Gymnasium environment (``cosim5g/PickLoop-v0``).
 
-A cell drawn from the randomised family (cells.py) runs in MuJoCo without rendering: parts
-arrive by the physics federate's spawn plan, the real ``PickController`` picks them. The camera
-keeps each 30 frame/s capture with the policy's PDP; a kept frame is compressed (the platform's
-modelled job time), crosses the uplink with a latency or a loss drawn from the network model
-(network.py) at the cell's current offered load and the policy's latency budget L, and at the
-Edge becomes the ground-truth part positions at capture plus the real estimator's measured error
-and misses (domain/data/frame_model.json), folded into the Edge's ``Tracker``; the tracks reach
-the controller after a downlink latency. A new QoS reaches the camera after a downlink latency.
-
-Load (mean field): the other loops of the radio cell run the same policy, so the cell's offered
-load is ``loops x camera rate x PDP_bar``, where PDP_bar is this loop's own PDP averaged over
-the last LOAD_TAU_S seconds: a policy that injects less lowers its own (and everyone's) latency.
-
-One step is one policy period (the scenario's ``edge.policy_period_ms``, 50 ms). The
-observation is ``domain.policy_features.features`` of the ``LoopState`` the Edge's ``CoDesign``
-builds, as at run time. The action is (PDP level, latency budget level). The reward is
-
-    r = -Cost + lambda * Perf
-    Cost = PDP x price(load / capacity) x (1 - fraction of the injected bytes discarded late)
-           x period_s (seconds of PDP-1 camera traffic the loop puts on the air, priced by
-           congestion: free under HEADROOM of the cell's capacity, then rising, 1 at capacity),
-    Perf = +1 per part placed, -1 per part missed or dropped, when the task ends,
-
-so lambda is what one task is worth in seconds of full-rate camera traffic at capacity. The
-PDP is the action's, bounded by the safety floor and by the load control (PDP 1 while the
-cell has headroom, a cap past its capacity) as at the Edge (``floor`` and ``load_control``
-switch them off). An episode is
-``episode_s`` of simulated time (truncated, never terminated).
+A work cell of the family (work_cells.py) runs in MuJoCo without rendering, its uplink is the
+measured network model (network.py), one step is one policy period. Observation, action, load
+and reward: docs/policy.md, "The environment".
 """
 
 from __future__ import annotations
@@ -44,7 +19,8 @@ from domain.codec import slot_after
 from domain.controller import PickController
 from domain.edge_side import CoDesign, default_limits, update_tracks
 from domain.frame_model import load_frame_model
-from domain.policy import LoopState, Qos
+from domain.loop_state import LoopState
+from domain.policy import Qos
 from domain.policy_features import BUDGET_LEVELS_MS, N_FEATURES, OBS_LIMIT, PDP_LEVELS, features
 from domain.tracker import Tracker
 from domain.world import World, spawn_plan

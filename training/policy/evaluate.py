@@ -1,9 +1,7 @@
 """Evaluation of co-design policies in the training environment: any ``domain.policy`` policy
-(``none``, ``fixed``, ``heuristic``, ``learned`` through ONNX Runtime, as the Edge runs it) on a
-fixed set of cells drawn from the family, the same cells for every policy.
-
-The numbers: task success (placed / ended tasks), tasks missed or dropped, the mean PDP and the
-camera traffic it injects per loop, the mean latency budget, the mean cost and reward.
+(``learned`` through ONNX Runtime, as the Edge runs it) on the same cells of the family for all.
+Task success, tasks missed or dropped, mean PDP and camera traffic per loop, mean latency budget,
+mean cost and reward.
 """
 
 from __future__ import annotations
@@ -14,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from domain.policy import LoopState, Policy, Qos, make_policy
+from domain.loop_state import LoopState
+from domain.policy import Policy, Qos, make_policy
 from scenario.schema import PolicyConfig
 from training.policy.env import DEFAULT_LAMBDA, PickLoopEnv
 

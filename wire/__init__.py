@@ -1,0 +1,1 @@
+"""The bodies of the data messages federates exchange: one typed struct per message kind."""
