@@ -1,42 +1,16 @@
-"""``make calibrate``: how faithful compute emulation is, measured on the real workloads.
+"""``cosim5g calibrate``: how faithful compute emulation is, measured on the real workloads.
 
-Every workload of ``domain.workloads`` (spin, compress, pose, control and the host-speed scoring
-mix) runs as jobs of a node of 1, 0.5 and 0.25 cpus, and of an unlimited node (the baseline), in
-interleaved rounds (round r visits the runtimes and the profiles in a rotated order, so a drift
-of the host's speed over minutes hits every cell alike), at least ``--rounds x --jobs`` jobs per
-cell. Per runtime, workload and cpus it reports, with bootstrap 95% confidence intervals of the
-ratio of medians:
-
-- ``cpu-mode / ideal``: the emulated duration in ``cpu`` timing (the job's own CPU time / cpus)
-  over the ideal (the unlimited node's CPU time for the same job / cpus);
-- ``wall / ideal``: the job's wall time on the limited node (what ``wall`` timing measures);
-- ``process clock / ideal``: the same estimate from the process CPU clock, which counts every
-  thread of the process: how jobs were measured before they had a clock of their own;
-
-and where an error remains, measurements of its causes: the pure-interpreter ``spin`` job as the
-control for clock-speed changes (its working set fits the L1 cache: if it slows down, the core
-did -- frequency, host contention -- not the caches), so a job's excess beyond spin's is caches and
-memory; throttled CFS periods per job and, within a cell, the CPU time of jobs throttled at least
-once over that of jobs never throttled (caches refilled after the node was descheduled);
-involuntary context switches; the CPU share of library worker threads; the host's speed drift
-between rounds (the scoring mix on the unlimited node); the idle-wake penalty of the core (a short
-L1-resident loop right after 10 ms of idle vs right after busy: what a throttled node meets at
-every period).
-
-Runtimes: ``process`` (a plain process, no cgroup: there is no CPU limit, so wall / ideal is about
-cpus), ``docker`` (a container of the runtime image with the docker runtime's limits for a
-``cpu``-timed node: whole cores, ceil(cpus); its ``cpu-mode / ideal`` is what a run gets),
-``docker-wall`` (the limits of a ``wall``-timed node: CFS period 10 ms, quota cpus x period; its
-``wall / ideal`` is what a run gets) and ``cgroup`` (a plain process in a cgroup with the
-``wall`` limits, for a host that has no images yet; needs a writable cgroup hierarchy).
-``--runtime both`` is process + docker + docker-wall. Written to results/bench/calibrate.{md,json};
-``--rebuild`` renders the report again from a saved calibrate.json.
+Every workload of ``domain.workloads`` runs as jobs of nodes of 1, 0.5 and 0.25 cpus and of an
+unlimited node, in each runtime; what is measured and reported (results/bench/calibrate.{md,json},
+``--rebuild`` from the JSON): docs/compute.md, "Calibration: make calibrate". ``--fit-job-models``
+fits what ``model`` timing draws from instead (docs/compute.md, "Model timing").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -49,6 +23,8 @@ from typing import Any
 import numpy as np
 
 from coordinator.launcher import NodeLimits
+from fabric.compute import JOB_MODELS_PATH
+from scenario.schema import Scenario
 
 PROFILES = (1.0, 0.5, 0.25)
 RUNTIMES = ("process", "docker", "docker-wall", "cgroup")
@@ -71,8 +47,13 @@ def _last_json_line(text: str, where: str) -> dict[str, Any]:
     raise CalibrateError(f"{where}: the workloads printed no result; its output ended with:\n{text[-2000:]}")
 
 
-def _worker_argv(cpus: float | None, jobs: int, only: list[str] | None) -> list[str]:
-    argv = ["-m", "domain.workloads", "--jobs", str(jobs)]
+# The workloads process calls ``domain.workloads.main`` from the installed package alone: the
+# runtime image has the packages but no scripts. Its arguments follow in sys.argv[1:].
+WORKER = "import sys; from domain.workloads import main; sys.exit(main(sys.argv[1:]))"
+
+
+def _worker_argv(cpus: float | None, jobs: int, only: list[str] | None, worker: str = WORKER) -> list[str]:
+    argv = ["-c", worker, "--jobs", str(jobs)]
     if cpus is not None:
         argv += ["--cpus", repr(cpus)]
     if only:
@@ -84,6 +65,7 @@ class ProcessRunner:
     """The workloads in a plain process, with the process runtime's environment; no CPU limit."""
 
     name = "process"
+    worker = WORKER
 
     def __init__(self, only: list[str] | None = None) -> None:
         self.only = only
@@ -99,7 +81,7 @@ class ProcessRunner:
         return self._spawn(cpus, jobs, None)
 
     def _spawn(self, cpus: float | None, jobs: int, preexec: Callable[[], None] | None) -> dict[str, Any]:
-        proc = subprocess.run([sys.executable, *_worker_argv(cpus, jobs, self.only)], cwd=ROOT,
+        proc = subprocess.run([sys.executable, *_worker_argv(cpus, jobs, self.only, self.worker)], cwd=ROOT,
                               env=self.env(), capture_output=True, text=True, timeout=WORKER_TIMEOUT_S,
                               preexec_fn=preexec)
         if proc.returncode != 0:
@@ -434,22 +416,257 @@ def write(out: Path, meta: dict[str, Any], jobs: list[dict[str, Any]]) -> str:
     return text
 
 
+# ---- job models: what ``model`` timing draws -----------------------------------------------------
+
+# The fit's profiles: the default nodes' cpus (camera and robot 0.25, Edge 1.0) and a node of two
+# cores, where a job's library pools get two threads: whether a kind uses more than one shows there.
+FIT_PROFILES = (0.25, 1.0, 2.0)
+FIT_KINDS = ("compress", "pose", "policy", "control")
+# The scenario whose camera (frame size and codec), estimator and policy the jobs are fitted at.
+FIT_SCENARIO = Path("configs") / "scenarios" / "co_design.yaml"
+# A kind uses more than one thread only where, on a node of two cores, its CPU time is at least
+# this many times its duration (both in the same processes, free of the noise between them). The
+# platform's kinds measured 1.00-1.12: OpenCV's idle pool workers add up to 12% of CPU time to a
+# compress job without making it any faster (its duration there equals its work on one core).
+PARALLEL_MIN_SPEEDUP = 1.25
+FIT_WORKER = "import sys; from coordinator.calibrate import fit_worker; sys.exit(fit_worker(sys.argv[1:]))"
+
+
+class FitRunner(ProcessRunner):
+    """The fit's workloads in a plain process: ``domain.workloads`` for compress, pose and control,
+    and the Edge's policy job (``fit_worker``)."""
+
+    worker = FIT_WORKER
+
+
+def fit_scenario(path: Path = FIT_SCENARIO) -> Scenario:
+    """The scenario the job models are fitted at; its camera and estimator must be the defaults,
+    which ``domain.workloads`` renders and estimates with."""
+    from domain.frame_model import camera_settings
+    from scenario.schema import ScenarioError, load_scenario, parse_scenario
+
+    try:
+        sc = load_scenario(ROOT / path)
+    except (OSError, ScenarioError) as exc:
+        raise CalibrateError(f"the job models are fitted at {path}, which does not load: {exc}") from None
+    default = parse_scenario({"loops": 1})
+    if camera_settings(sc.camera) != camera_settings(default.camera) or sc.edge.estimator != default.edge.estimator:
+        raise CalibrateError(f"{path} sets another camera or estimator than the defaults the workloads "
+                             "run with (domain/workloads.py): fit the job models at the defaults")
+    return sc
+
+
+def _policy_job() -> Callable[[], Any]:
+    """The Edge's policy job as its federate runs it (``CoDesign.decide`` for the fit scenario's
+    policy), every policy period, on a tracker that follows the parts on a belt."""
+    from domain.edge_side import CoDesign, update_tracks
+    from domain.tracker import Tracker
+    from domain.world import World
+
+    sc = fit_scenario()
+    world = World(sc)
+    world.spawn(0)
+    tracker = Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0))
+    for t_us in range(1_000_000, 1_500_001, 100_000):
+        world.advance_to(t_us)
+        update_tracks(tracker, t_us, [np.asarray(o["p"]) for o in world.objects(0)])
+    codesign = CoDesign.for_scenario(sc)
+    state = {"t_us": 1_500_000}
+
+    def policy() -> Any:
+        state["t_us"] += sc.edge.policy_period_ms * 1000
+        return codesign.decide(0, state["t_us"], tracker, state["t_us"] - 33_000)
+
+    return policy
+
+
+def _measure_policy(cpus: float, jobs: int) -> list[dict[str, Any]]:
+    """``jobs`` policy jobs on a ``cpu``-timed node of ``cpus`` at the reference core's score (as
+    ``domain.workloads.measure`` runs the others), each right after a pose estimate, untimed, as
+    on the Edge: after one, a decision takes 3 to 4 times its CPU time on warm caches."""
+    from domain.workloads import build_jobs
+    from fabric import host_speed
+    from fabric.compute import ComputeNode
+    from fabric.seeding import rng
+    from scenario.schema import NodeProfile
+
+    ref = host_speed.reference()
+    node = ComputeNode("fit", NodeProfile(cpus=cpus, timing="cpu"), rng(0, "fit"),
+                       host=host_speed.HostScore(score=ref.score, source="injected"), probe=lambda: ref.score)
+    job, pose = _policy_job(), build_jobs()["pose"]
+    for _ in range(2):
+        pose()
+        job()
+    for _ in range(jobs):
+        pose()
+        node.run("policy", 0, job)
+    return [{"cpu_us": r.cpu_us, "duration_us": r.duration_us, "wall_us": r.wall_us} for r in node.records]
+
+
+def fit_worker(argv: list[str]) -> int:
+    """The fit's workloads process (``FIT_WORKER``): every kind of ``FIT_KINDS`` run ``--jobs``
+    times on a ``cpu``-timed node of ``--cpus``; prints one JSON object as ``domain.workloads``."""
+    from domain.workloads import measure
+
+    ap = argparse.ArgumentParser(prog="cosim5g calibrate --fit-job-models (workloads)")
+    ap.add_argument("--cpus", type=float, required=True)
+    ap.add_argument("--jobs", type=int, required=True)
+    args = ap.parse_args(argv)
+    result = measure(args.cpus, args.jobs, [*(k for k in FIT_KINDS if k != "policy"), "score"])
+    result["workloads"]["policy"] = _measure_policy(args.cpus, args.jobs)
+    print(json.dumps(result))
+    return 0
+
+
+def fit(results: list[tuple[float, dict[str, Any]]], reference_mix_ms: float) -> dict[str, Any]:
+    """The job models from the workloads' results, one ``(cpus, result)`` per worker process.
+
+    A job's work is its CPU time in reference-core microseconds: its CPU time x its process's
+    speed, the reference core's time for the scoring mix (``reference_mix_ms``, the sum of its
+    components) over the median CPU time of the process's ``score`` jobs, which ran interleaved
+    with the others: other load on the host slows the mix as it slows the jobs, and cancels.
+    Per kind: ``work_us``, the median work on nodes of one core (one thread: a job's duration
+    there is its CPU time over cpus); ``sd``, its interquartile range / 1.349 over the median; ``threads``, 1
+    unless its CPU time on a node of two or more cores is at least ``PARALLEL_MIN_SPEEDUP`` times
+    its duration there, then ``work_us`` over that duration at one reference core a core, so that
+    model and ``cpu`` timing agree there too. Per profile it keeps the jobs' count, their median
+    ``cpu``-timing duration in reference time, the model's mean there and, on more cores, the
+    speedup (CPU time over duration)."""
+    from fabric.compute import FittedJobModel
+
+    speeds = []
+    for cpus, result in results:
+        mix = [j["cpu_us"] for j in result["workloads"].get("score", [])]
+        if not mix:
+            raise CalibrateError(f"the workloads at cpus={cpus} ran no scoring mix: the fit needs it")
+        speeds.append(reference_mix_ms * 1000 / statistics.median(mix))
+    kinds: dict[str, Any] = {}
+    for kind in FIT_KINDS:
+        by_cpus: dict[float, list[tuple[float, dict[str, Any]]]] = {}
+        for (cpus, result), speed in zip(results, speeds, strict=True):
+            by_cpus.setdefault(cpus, []).extend((speed, j) for j in result["workloads"].get(kind, []))
+        work = np.array([speed * j["cpu_us"] for cpus, jobs in by_cpus.items() if cpus <= 1
+                         for speed, j in jobs], dtype=float)
+        if len(work) < 2:
+            raise CalibrateError(f"the fit measured {len(work)} {kind} jobs on nodes of at most 1 cpu: "
+                                 "at least 2 are needed")
+        median = float(np.median(work))
+        q1, q3 = np.percentile(work, [25, 75])
+        speedups, gains = {}, [1.0]
+        for cpus, jobs in by_cpus.items():
+            cores = math.ceil(cpus)
+            if cores > 1 and jobs:
+                busy = [j["duration_us"] * cpus / cores for _, j in jobs]
+                speedups[cpus] = float(np.median([j["cpu_us"] for _, j in jobs]) / np.median(busy))
+                if speedups[cpus] >= PARALLEL_MIN_SPEEDUP:
+                    gains.append(median / float(np.median([speed * b for (speed, _), b in zip(jobs, busy, strict=True)])))
+        threads = round(max(gains), 2)
+        model = FittedJobModel(work_us=round(median, 1), sd=round(float(q3 - q1) / 1.349 / median, 3),
+                               threads=threads)
+        fitted_from = []
+        for cpus in sorted(by_cpus):
+            jobs = by_cpus[cpus]
+            measured = float(np.median([speed * j["duration_us"] for speed, j in jobs]))
+            row = {"cpus": cpus, "jobs": len(jobs), "cpu_timing_median_us": round(measured, 1),
+                   "model_mean_us": model.at(cpus).mean_us}
+            if cpus in speedups:
+                row["speedup"] = round(speedups[cpus], 3)
+            fitted_from.append(row)
+        kinds[kind] = {"work_us": model.work_us, "sd": model.sd, "threads": model.threads,
+                       "fitted_from": fitted_from}
+    return {"kinds": kinds, "speeds": [round(v, 4) for v in speeds],
+            "host_scores": [round(float(r["env"]["host_score"]), 2) for _, r in results]}
+
+
+def fit_job_models(out: Path, rounds: int, jobs: int, profiles: tuple[float, ...] = FIT_PROFILES,
+                   log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Measure every kind of ``FIT_KINDS`` at each of ``profiles`` (cpus) in ``cpu`` timing,
+    ``rounds`` interleaved rounds of ``jobs`` jobs per kind and profile, fit the job models and
+    write them to ``out`` (the package's ``fabric/data/job_models.json`` by default)."""
+    from domain.frame_model import camera_settings
+    from fabric import host_speed
+    from fabric.compute import parse_job_models
+
+    sc = fit_scenario()
+    runner = FitRunner()
+    load_start = os.getloadavg()[0]
+    results: list[tuple[float, dict[str, Any]]] = []
+    for rnd in range(rounds):
+        for i in range(len(profiles)):
+            cpus = profiles[(rnd + i) % len(profiles)]
+            log(f"job models, round {rnd + 1}/{rounds}: cpus={cpus}")
+            results.append((cpus, runner.run(cpus, jobs)))
+    ref = host_speed.reference()
+    fitted = fit(results, sum(ref.components_ms.values()))
+    data = {
+        "about": "What model timing draws a job's duration from, per job kind: work_us, its CPU time on "
+                 "one reference core (median), sd relative to it, threads it runs in parallel; fitted by "
+                 "cosim5g calibrate --fit-job-models from cpu-timed runs of the real workloads "
+                 "(docs/compute.md, Model timing). host: the fit's processes' scores at their start and "
+                 "speeds (reference core = 1) from the scoring mix run among the jobs.",
+        "fitted_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        "scenario": str(FIT_SCENARIO), "camera": camera_settings(sc.camera),
+        "estimator": sc.edge.estimator, "policy": sc.policy.name,
+        "profiles_cpus": list(profiles), "rounds": rounds, "jobs_per_round": jobs,
+        "host": {"cpu_model": host_speed.cpu_model(), "cores": os.cpu_count(),
+                 "score": round(statistics.median(fitted["host_scores"]), 2), "scores": fitted["host_scores"],
+                 "speed": round(statistics.median(fitted["speeds"]), 4), "speeds": fitted["speeds"],
+                 "load_start": round(load_start, 2), "load_end": round(os.getloadavg()[0], 2)},
+        "reference": {"score": round(ref.score, 2), "cpu_model": ref.env.get("cpu_model", ""),
+                      "measured_at": ref.measured_at},
+        "kinds": fitted["kinds"],
+    }
+    parse_job_models(data, str(out))  # what the nodes will load
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp"
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(out)
+    return data
+
+
+def render_job_models(data: dict[str, Any]) -> str:
+    """The fitted job models as a table: per kind and profile, the ``cpu``-timing median duration
+    against the model's mean."""
+    host = data["host"]
+    lines = [f"# Job models ({data['fitted_at']}, {host['cpu_model']}, speed {host['speed']:.3f} reference "
+             f"cores, from {min(host['speeds']):.3f} to {max(host['speeds']):.3f})", "",
+             "| kind | work at 1 ref. core us | sd | threads | cpus | jobs | cpu timing median us | model mean us |",
+             "|---|---|---|---|---|---|---|---|"]
+    for kind, m in data["kinds"].items():
+        for row in m["fitted_from"]:
+            lines.append(f"| {kind} | {m['work_us']:g} | {m['sd']:g} | {m['threads']:g} | {row['cpus']:g} | "
+                         f"{row['jobs']} | {row['cpu_timing_median_us']:g} | {row['model_mean_us']} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="cosim5g calibrate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runtime", choices=[*RUNTIMES, "both"], default="both",
                     help="where the workloads run (both: process, docker and docker-wall)")
     ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds over runtimes and profiles")
     ap.add_argument("--jobs", type=int, default=6, help="jobs per workload, profile and round")
     ap.add_argument("--only", nargs="*", help="workload names (default: all)")
-    ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
+    ap.add_argument("--out", type=Path, default=Path("results") / "bench",
+                    help="folder for calibrate.md and calibrate.json (default results/bench)")
     ap.add_argument("--rebuild", action="store_true", help="render the report again from OUT/calibrate.json")
     ap.add_argument("--source", action="store_true",
                     help="docker: run this working tree's code (mounted read-only) in the runtime image, "
                     "instead of the copy installed in it at `make images`")
+    ap.add_argument("--fit-job-models", nargs="?", const=JOB_MODELS_PATH, type=Path, metavar="JSON",
+                    help="instead: fit what model timing draws from, each job kind at cpus "
+                    f"{', '.join(map(str, FIT_PROFILES))} in the process runtime (--rounds x --jobs jobs "
+                    "per kind and cpus), and write it to JSON (default: the package's fabric/data/job_models.json)")
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.jobs < 1:
         ap.error("--rounds and --jobs must be at least 1")
     try:
+        if args.fit_job_models is not None:
+            data = fit_job_models(args.fit_job_models, args.rounds, args.jobs,
+                                  log=lambda m: print(m, file=sys.stderr))
+            print(render_job_models(data), end="")
+            print(f"written to {args.fit_job_models}", file=sys.stderr)
+            return 0
         if args.rebuild:
             data = json.loads((args.out / "calibrate.json").read_text())
             cols = data["jobs"]["columns"]
@@ -468,7 +685,3 @@ def main(argv: list[str] | None = None) -> int:
     print(write(args.out, meta, jobs), end="")
     print(f"written to {args.out / 'calibrate.md'} and calibrate.json", file=sys.stderr)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,13 +1,13 @@
-"""Compute emulation (docs/architecture.md sec. 5, docs/compute.md): a node runs its jobs for real,
-one at a time per emulated core; a job arriving at t starts at max(t, earliest free core) and its
-outputs are due at start + its emulated duration, which the node's timing mode gives: ``cpu``
-(the job's CPU time, its own and its library threads', in reference-core time over ``cpus``),
-``wall`` (its wall time inside the node's CFS quota) or ``model`` (a seeded draw). Each job's
-queueing delay, duration, CPU and wall time are recorded.
+"""Compute emulation: a node runs its jobs for real, one at a time per emulated core.
+
+The timing mode (``cpu``, ``wall`` or ``model``) gives each job's simulated duration; each job's
+queueing delay, duration, CPU and wall time are recorded. The contract: docs/architecture.md
+sec. 5; the detail: docs/compute.md.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import statistics
@@ -23,23 +23,115 @@ import numpy as np
 
 from fabric import host_speed, metrics
 from fabric.host_speed import HostScore
-from scenario.schema import JobModel, NodeProfile
+from scenario.schema import JobModel, NodeProfile, Nodes
 
 T = TypeVar("T")
 
-# Emulated durations of the platform's jobs when a profile gives none: cpu-mode medians of the
-# smoke scenario (424x240 frames; camera 0.25, Edge 1.0, robot 0.25 cpus), rounded up. compress:
-# JPEG + decimated delta-zlib depth; pose: decode + the learned estimator (docs/perception.md).
-DEFAULT_JOB_MODELS = {
-    "compress": JobModel(mean_us=5_000, sd_us=800),
-    "pose": JobModel(mean_us=4_000, sd_us=500),
-    "policy": JobModel(mean_us=50, sd_us=10),
-    "control": JobModel(mean_us=1_600, sd_us=300),
-}
+# What ``model`` timing draws from when a profile gives no ``model_us`` for a kind: each job kind's
+# work fitted from cpu-timed runs of the real workloads (``cosim5g calibrate --fit-job-models``;
+# docs/compute.md, "Model timing"), scaled to the node's cpus.
+JOB_MODELS_FILE = "data/job_models.json"
+JOB_MODELS_PATH = Path(__file__).parent / JOB_MODELS_FILE
+# The node each job kind runs on, for the defaults at the default profiles.
+JOB_NODES = {"compress": "camera", "pose": "edge", "policy": "edge", "control": "robot"}
+
+
+class JobModelsError(ValueError):
+    """The fitted job models file cannot be used; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class FittedJobModel:
+    """A job kind's work in ``model`` timing: ``work_us``, its CPU time on one reference core (us);
+    ``sd``, its standard deviation relative to ``work_us``; ``threads``, how many threads it keeps
+    busy in parallel (1: one thread)."""
+
+    work_us: float
+    sd: float = 0.0
+    threads: float = 1.0
+
+    def at(self, cpus: float) -> JobModel:
+        """The distribution of its duration on a node of ``cpus`` reference cores, as ``cpu``
+        timing gives it (``ComputeNode.cpu_duration_us``): the work spread over its threads, at
+        most the node's ``ceil(cpus)`` cores, each core ``cpus / cores`` reference cores fast."""
+        cores = max(1, math.ceil(cpus))
+        mean = self.work_us / (min(self.threads, cores) * cpus / cores)
+        # A spread, however small, keeps its draw: one normal draw per job (``draw_model_us``).
+        sd_us = max(1, round(self.sd * mean)) if self.sd > 0 else 0
+        return JobModel(mean_us=max(1, round(mean)), sd_us=sd_us)
+
+
+def parse_job_models(data: Any, where: str) -> dict[str, FittedJobModel]:
+    """The fitted job models in ``data`` (the JSON of ``JOB_MODELS_FILE``, read from ``where``),
+    checked: per kind under ``kinds``, ``work_us`` > 0, 0 <= ``sd`` < 1, ``threads`` >= 1."""
+
+    def refused(what: str) -> JobModelsError:
+        return JobModelsError(f"{where}: {what}; write the file again with `cosim5g calibrate --fit-job-models`")
+
+    kinds = data.get("kinds") if isinstance(data, dict) else None
+    if not isinstance(kinds, dict) or not kinds:
+        raise refused("expected an object whose 'kinds' maps each job kind to {work_us, sd, threads}")
+    out = {}
+    for kind, entry in kinds.items():
+        if not isinstance(entry, dict):
+            raise refused(f"kinds.{kind} is {entry!r}, not an object")
+        values = {}
+        for name, default, ok, allowed in (("work_us", None, lambda v: v > 0, "a number > 0"),
+                                           ("sd", 0.0, lambda v: 0 <= v < 1, "a number in [0, 1)"),
+                                           ("threads", 1.0, lambda v: v >= 1, "a number >= 1")):
+            value = entry.get(name, default)
+            if value is None:
+                raise refused(f"kinds.{kind}.{name} is missing ({allowed})")
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
+                    or not ok(value):
+                raise refused(f"kinds.{kind}.{name} is {value!r}, expected {allowed}")
+            values[name] = float(value)
+        out[str(kind)] = FittedJobModel(**values)
+    return out
+
+
+def load_job_models(path: Path = JOB_MODELS_PATH) -> dict[str, FittedJobModel]:
+    """The fitted job models in the file ``path`` (default: the package's)."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise JobModelsError(f"{path}: cannot read the fitted job models ({exc.strerror}); write it with "
+                             "`cosim5g calibrate --fit-job-models`") from None
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise JobModelsError(f"{path}: not JSON ({exc}); write it again with "
+                             "`cosim5g calibrate --fit-job-models`") from None
+    return parse_job_models(data, str(path))
+
+
+@cache
+def fitted_job_models() -> dict[str, FittedJobModel]:
+    """The package's fitted job models (read once a process)."""
+    return load_job_models()
+
+
+@cache
+def default_job_models() -> dict[str, JobModel]:
+    """The fitted models at the default node profiles (camera 0.25, Edge 1.0, robot 0.25 cpus),
+    for a model of a loop without nodes (the policy's training environment)."""
+    nodes = Nodes()
+    fitted = fitted_job_models()
+    return {kind: fitted[kind].at(getattr(nodes, node).cpus) for kind, node in JOB_NODES.items() if kind in fitted}
+
+
+def __getattr__(name: str) -> Any:
+    # DEFAULT_JOB_MODELS is read on first use, not at import: the fit that writes the file runs
+    # jobs through this module, and a run with no model-timed node never needs it.
+    if name == "DEFAULT_JOB_MODELS":
+        return default_job_models()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def draw_model_us(dist: JobModel, rng: np.random.Generator) -> int:
-    """A job's duration in ``model`` timing: a normal draw, truncated at a tenth of the mean."""
+    """A job's duration in ``model`` timing, simulated microseconds (at least 1): a draw from
+    ``rng`` of the normal distribution ``dist`` (``mean_us``, ``sd_us``), truncated at a tenth of
+    the mean."""
     draw = rng.normal(dist.mean_us, dist.sd_us) if dist.sd_us else dist.mean_us
     return max(1, int(round(max(draw, dist.mean_us * 0.1))))
 
@@ -71,6 +163,7 @@ class CpuQuota:
 
     @property
     def cpus(self) -> float:
+        """The cores the quota amounts to: quota / period."""
         return self.quota_us / self.period_us
 
 
@@ -94,7 +187,8 @@ def _own_cgroups(self_cgroup: Path) -> dict[str, str]:
 
 
 def read_cpu_quota(root: Path = CGROUP_ROOT, self_cgroup: Path = SELF_CGROUP) -> CpuQuota | None:
-    """This process's CPU quota (cgroup v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us``), None if none.
+    """This process's CPU quota (cgroup v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us``), None if none;
+    ``root`` is where the cgroup hierarchies are mounted, ``self_cgroup`` the process's cgroup file.
 
     Inside a container the cgroup is mounted at the root of the hierarchy; on a host it is the
     path /proc/self/cgroup names, so both places are tried, the process's own first."""
@@ -160,7 +254,8 @@ def read_cpu_stat() -> dict[str, int] | None:
 
 
 def read_throttled_ns() -> int | None:
-    """Cumulative CPU-quota throttling of this process's cgroup, ns (None if not visible)."""
+    """Cumulative CPU-quota throttling of this process's cgroup, nanoseconds (None if not
+    visible)."""
     stat = read_cpu_stat()
     if stat is None:
         return None
@@ -192,20 +287,24 @@ class CpuSample:
 
     @property
     def total_ns(self) -> int:
+        """CPU time on every thread the job used, nanoseconds."""
         return self.own_ns + sum(self.helpers_ns)
 
     @property
     def longest_ns(self) -> int:
-        """The busiest thread's CPU time: the job cannot be shorter, however many cores."""
+        """The busiest thread's CPU time, nanoseconds: the job cannot be shorter, however many
+        cores."""
         return max((self.own_ns, *self.helpers_ns))
 
 
 class CpuClock(Protocol):
     """Measures the CPU time of a job run by the calling thread."""
 
-    def start(self) -> Any: ...
+    def start(self) -> Any:
+        """Begin measuring a job on the calling thread; returns the token ``stop`` takes."""
 
-    def stop(self, token: Any) -> CpuSample: ...
+    def stop(self, token: Any) -> CpuSample:
+        """The CPU time the job used since ``start`` gave ``token``."""
 
 
 class ThreadCpuClock:
@@ -257,10 +356,14 @@ class ThreadCpuClock:
             return None  # the thread has exited
 
     def start(self) -> tuple[dict[int, int], int]:
+        """The worker threads' CPU clocks and the calling thread's, nanoseconds: the token
+        ``stop`` takes."""
         before = {tid: ns for tid in self.workers() if (ns := self._thread_ns(tid)) is not None}
         return before, time.thread_time_ns()
 
     def stop(self, token: tuple[dict[int, int], int]) -> CpuSample:
+        """The CPU time used since ``start`` gave ``token``: the calling thread's, and each
+        worker thread's that grew (all of it for a thread started meanwhile)."""
         own = time.thread_time_ns() - token[1]
         before = token[0]
         helpers = []
@@ -296,9 +399,12 @@ JOB_RECORD_FIELDS = tuple(f.name for f in fields(JobRecord))
 class ComputeNode:
     """The emulated processor of one node.
 
+    ``node``: its name in the records and metrics; ``profile``: its ``cpus`` (reference cores),
+    timing mode and ``model_us`` distributions; ``rng``: the stream ``model`` timing draws from.
     ``host`` (this host's score), ``clock`` (the job CPU clock) and ``probe`` (a short speed
-    measurement) are injectable; by default the score comes from ``host_speed.host_score()``
-    (``COSIM5G_HOST_SCORE``, the cache or a measurement), only for ``cpu`` and ``wall`` timing."""
+    measurement, a score) are injectable; by default the score comes from
+    ``host_speed.host_score()`` (``COSIM5G_HOST_SCORE``, the cache or a measurement), only for
+    ``cpu`` and ``wall`` timing."""
 
     def __init__(self, node: str, profile: NodeProfile, rng: np.random.Generator, *,
                  host: HostScore | None = None, clock: CpuClock | None = None,
@@ -336,8 +442,10 @@ class ComputeNode:
         return self.cores
 
     def run(self, kind: str, arrival_us: int, fn: Callable[..., T], *args: Any) -> tuple[T, int]:
-        """Run ``fn(*args)`` now (for real) as a job arriving at ``arrival_us``; returns its result
-        and the simulated time at which it is done."""
+        """Run ``fn(*args)`` now (for real) as a job of ``kind`` (``compress``, ``pose``...)
+        arriving at ``arrival_us``, simulated microseconds; returns its result and the simulated
+        time, microseconds, at which it is done. ``WallTimingRefused`` where ``wall`` timing
+        cannot emulate it."""
         if self.profile.timing == "wall" and self.quota is None:
             # Checked at the first job rather than at start: a window's error reaches the run's
             # reason, a failed start only the federate's log.
@@ -409,19 +517,23 @@ class ComputeNode:
                 values.clear()
 
     def cpu_duration_us(self, cpu: CpuSample) -> float:
-        """A job's duration on this node in host time: its CPU time over the node's speed, spread
-        over the threads it used but no more than the node's cores."""
+        """A job's duration on this node in host time, microseconds, from its CPU time ``cpu``:
+        over the node's speed, spread over the threads it used but no more than the node's cores."""
         return max(cpu.longest_ns, cpu.total_ns / self.cores) / 1000 / self.core_speed
 
     def _job_model(self, kind: str) -> JobModel:
-        """The distribution ``model`` timing draws a ``kind`` job's duration from."""
+        """The distribution ``model`` timing draws a ``kind`` job's duration from: the profile's
+        ``model_us`` (absolute), else the fitted model at the node's cpus."""
         dist = self._job_models.get(kind)
         if dist is None:
-            dist = self.profile.model_us.get(kind) or DEFAULT_JOB_MODELS.get(kind)
+            dist = self.profile.model_us.get(kind)
+            fitted = fitted_job_models()
+            if dist is None and kind in fitted:
+                dist = fitted[kind].at(self.profile.cpus)
             if dist is None:
                 raise KeyError(
                     f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
-                    f"(has: {sorted(self.profile.model_us)})"
+                    f"(has: {sorted(self.profile.model_us)}; fitted kinds: {sorted(fitted)})"
                 )
             self._job_models[kind] = dist
         return dist
@@ -465,8 +577,9 @@ class ComputeNode:
 
     def speed_summary(self, t_us: int | None = None) -> dict[str, Any]:
         """The node's speed for the run's KPIs: the score its durations were scaled by, the
-        reference, the scale, the speed probed during the run (a last probe at ``t_us``) and
-        whether it drifted more than ``DRIFT_LIMIT`` (then its compute latencies are suspect)."""
+        reference, the scale, the speed probed during the run (a last probe at ``t_us``,
+        simulated microseconds, if none was taken then) and whether it drifted more than
+        ``DRIFT_LIMIT`` (then its compute latencies are suspect)."""
         if not self.measured:
             return {"timing": "model", "host_independent": True}
         if t_us is not None and (not self.probes or self.probes[-1][0] < t_us):
