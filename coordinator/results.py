@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
+import yaml
 
 from fabric.tables import TABLES, merge_parts, read_rows, write_table
 
@@ -114,7 +115,47 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
         "camera_bitrate_mbps": camera_mbps,
         "camera_bitrate_mbps_mean": float(np.mean(list(camera_mbps.values()))) if camera_mbps else 0.0,
         "compute_latency": node_latency,
+        **_gnb_kpis(run_dir, pk, sim),
     }
+
+
+def _gnb_kpis(run_dir: Path, pk: pa.Table, sim_s: float) -> dict[str, Any]:
+    """With several gNBs (``hall.inf_layout``): per gNB ``gnb<i>.<link>.prb_utilisation`` (PRBs
+    that carried a transmission over the cell's PRB-slots) and ``gnb<i>.<link>.throughput_mbps``
+    (IP bytes delivered), and the distribution of the transmissions' effective SINR per link
+    (``<link>_sinr_db``: p5, p50, p95). Nothing with one gNB (its tables have no gNB)."""
+    packets = run_dir / "packets.parquet"
+    if packets.exists() and "gnb" not in pq.read_schema(packets).names:
+        return {}  # recorded before the column was
+    gnb = _read(packets, ["gnb"])["gnb"]
+    tx = _read(run_dir / "transmissions.parquet", ["gnb", "dir", "n_prb", "cell_prb", "sinr_db"])
+    if not tx.num_rows and gnb.null_count == len(gnb):
+        return {}
+    out: dict[str, Any] = {}
+    slots = sim_s * 1e6 / _slot_us(run_dir)
+    used = tx.group_by(["gnb", "dir"]).aggregate([("n_prb", "sum"), ("cell_prb", "max")]).to_pydict()
+    for g, link, prb, cell_prb in sorted(zip(used["gnb"], used["dir"], used["n_prb_sum"],
+                                             used["cell_prb_max"], strict=True)):
+        out[f"gnb{g}.{link}.prb_utilisation"] = prb / (cell_prb * slots) if slots else None
+    sent = pa.table({"gnb": gnb, "dir": pk["dir"], "size_bytes": pk["size_bytes"]}).filter(
+        pc.and_(pc.is_valid(pk["deliver_us"]), pc.is_valid(gnb)))
+    delivered = sent.group_by(["gnb", "dir"]).aggregate([("size_bytes", "sum")]).to_pydict()
+    for g, link, size in sorted(zip(delivered["gnb"], delivered["dir"], delivered["size_bytes_sum"],
+                                    strict=True)):
+        out[f"gnb{g}.{link}.throughput_mbps"] = size * 8 / sim_s / 1e6
+    for link in ("ul", "dl"):
+        sinr = np.asarray(pc.filter(tx["sinr_db"], pc.equal(tx["dir"], link)).to_numpy(), dtype=float)
+        out[f"{link}_sinr_db"] = {f"p{q}": _pct(sinr, q) for q in (5, 50, 95)}
+    return out
+
+
+def _slot_us(run_dir: Path) -> int:
+    """The run's NR slot, us (``netsim.slot_us`` of its resolved scenario; 1000 without one)."""
+    try:
+        config = yaml.safe_load((run_dir / "config.yaml").read_text())
+        return int(config["netsim"]["slot_us"])
+    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError):
+        return 1000
 
 
 def _read(path: Path, names: list[str]) -> pa.Table:

@@ -37,9 +37,17 @@ TASKS = pa.schema([
 
 PACKETS = pa.schema([
     ("packet_id", _I), ("flow", _S), ("ue", _S), ("dir", _S), ("size_bytes", _I),
-    ("enqueue_us", _I), ("deliver_us", _I), ("latency_us", _I), ("lost_cause", _S),
+    ("enqueue_us", _I), ("deliver_us", _I), ("latency_us", _I), ("lost_cause", _S), ("gnb", _I),
 ])
-"""Per IP packet (netsim): delivery time and latency, or the cause of its loss."""
+"""Per IP packet (netsim): delivery time and latency, or the cause of its loss; the index of the
+serving gNB with several (``hall.inf_layout``), else null."""
+
+TRANSMISSIONS = pa.schema([
+    ("t_us", _I), ("gnb", _I), ("dir", _S), ("ue", _S), ("n_prb", _I), ("cell_prb", _I),
+    ("mcs", _I), ("tx", _I), ("sinr_db", _F), ("ok", _B),
+])
+"""Per PDSCH/PUSCH transmission of a transport block with several gNBs (netsim): slot start, gNB,
+UE, PRBs of the TB and of the cell's carrier, MCS, transmission number, effective SINR, decoded."""
 
 JOBS = pa.schema([
     ("arrival_us", _I), ("cpu_us", _I), ("duration_us", _I), ("end_us", _I), ("kind", _S),
@@ -55,7 +63,8 @@ FRAMES = pa.schema([
 ])
 """Per frame: camera rows (pdp, kept, bytes, packets) and Edge rows (complete, detections, lost)."""
 
-TABLES: dict[str, pa.Schema] = {"tasks": TASKS, "packets": PACKETS, "jobs": JOBS, "frames": FRAMES}
+TABLES: dict[str, pa.Schema] = {"tasks": TASKS, "packets": PACKETS, "jobs": JOBS, "frames": FRAMES,
+                                 "transmissions": TRANSMISSIONS}
 
 
 class TableError(ValueError):

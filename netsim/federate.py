@@ -18,6 +18,8 @@ from msgspec.structs import replace
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
+from netsim.nr.layout import layout_from_hall
+from netsim.nr.multicell import MultiCell
 from netsim.nr.radio_cell import NrCell
 from netsim.radio_cell import (
     LOSS_BUFFER,
@@ -40,12 +42,17 @@ MAX_URGENCY = 8.0
 
 
 def make_cell(federate: Federate) -> RadioCell:
-    """The cell model the scenario names, with the UEs of every loop at their hall positions."""
+    """The cell model the scenario names, with the UEs of every loop at their hall positions: the
+    NR cells of every gNB of ``hall.inf_layout`` when it is set, else the one gNB's."""
     sc = federate.scenario
     cfg = sc.netsim
     if cfg.model == "simple":
         return SimpleCell(cfg.slot_us, cfg.ul_rate_mbps, cfg.dl_rate_mbps, cfg.loss_probability,
                           cfg.buffer_bytes, federate.rng("cell"))
+    layout = layout_from_hall(sc.hall)
+    if layout is not None:
+        return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
+                         stream_prefix=f"{federate.name}/nr", record=True)
     return NrCell(cfg.nr, gnb_position_m=sc.hall.gnb_position_m,
                   ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=f"{federate.name}/nr")
 
@@ -75,6 +82,9 @@ class NetsimFederate(Federate):
         self.next_packet_id = 0
         self.slot_scheduled: int | None = None
         self.packets = self.table("packets")
+        # Every run has the table, empty with one gNB (the model keeps no transmissions then).
+        self.transmissions = self.table("transmissions")
+        self.serving = self.cell.serving()
         self.flow_pdb: dict[str, int | None] = {}
         # Simulated-time rates for the dashboards, refreshed every simulated second.
         self.delivered_bits = {"ul": 0, "dl": 0}
@@ -192,6 +202,9 @@ class NetsimFederate(Federate):
         places: dict[tuple[str, int], dict[int, int]] = {}  # per bundle: id(app) -> its item's index
         outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
+        sent = self.cell.transmissions()
+        if sent:
+            self.transmissions.extend_columns(sent)
         if self.outside_in_cell.total():
             for o in outcomes:
                 p = o.packet
@@ -240,7 +253,7 @@ class NetsimFederate(Federate):
         histogram gets each distinct value once with its count rather than once a packet."""
         # A column at a time: the same rows and batches as a row a packet, without a dict per
         # packet (netsim.records, compiled).
-        columns = OutcomeColumns(outcomes)
+        columns = OutcomeColumns(outcomes, self.serving)
         self.packets.extend_columns(columns.as_dict())
         latencies: dict[str, dict[int, int]] = {"ul": {}, "dl": {}}
         columns.tally(self.fates, self.delivered_bits, latencies)

@@ -120,3 +120,12 @@ class RadioCell(ABC):
     def stats(self) -> dict[str, Any]:
         """Counters for metrics and KPIs (free-form, numbers only)."""
         return {}
+
+    def serving(self) -> dict[str, int] | None:
+        """UE id -> the index of the gNB serving it, for a model of several gNBs (None: one)."""
+        return None
+
+    def transmissions(self) -> dict[str, list[Any]] | None:
+        """The radio transmissions made since the last call, as the columns of the
+        ``transmissions`` table (None: the model keeps none)."""
+        return None

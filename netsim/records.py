@@ -11,9 +11,10 @@ from netsim.radio_cell import PacketOutcome
 
 class OutcomeColumns:
     """The ``packets`` table's columns (``fabric.tables.PACKETS``, in its order) of
-    ``outcomes``; times and latencies in us, sizes in bytes."""
+    ``outcomes``; times and latencies in us, sizes in bytes. ``serving`` (UE id -> index of its
+    gNB) fills the ``gnb`` column; without it the column is null (one gNB)."""
 
-    def __init__(self, outcomes: list[PacketOutcome]) -> None:
+    def __init__(self, outcomes: list[PacketOutcome], serving: dict[str, int] | None = None) -> None:
         self.packet_id: list[int] = []
         self.flow: list[str] = []
         self.ue: list[str] = []
@@ -35,13 +36,15 @@ class OutcomeColumns:
             self.deliver_us.append(t)
             self.latency_us.append(None if t is None else t - p.enqueue_us)
             self.lost_cause.append(o.cause)
+        self.gnb: list[int | None] = ([None] * len(self.ue) if serving is None
+                                      else [serving[u] for u in self.ue])
 
     def as_dict(self) -> dict[str, list[Any]]:
         """The columns by name."""
         return {"packet_id": self.packet_id, "flow": self.flow, "ue": self.ue, "dir": self.dir,
                 "size_bytes": self.size_bytes, "enqueue_us": self.enqueue_us,
                 "deliver_us": self.deliver_us, "latency_us": self.latency_us,
-                "lost_cause": self.lost_cause}
+                "lost_cause": self.lost_cause, "gnb": self.gnb}
 
     def tally(self, fates: dict[tuple[str, str], int], bits: dict[str, int],
               latencies: dict[str, dict[int, int]]) -> None:

@@ -27,8 +27,17 @@ from pydantic import ValidationError
 
 from fabric.heap import simulation_heap
 from fabric.seeding import rng as named_rng
+from netsim.nr.layout import LATTICE_COLUMNS, LATTICE_ROWS, InfLayout, drop_ues
+from netsim.nr.multicell import MultiCell
 from netsim.nr.radio_cell import NrCell
-from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
+from netsim.radio_cell import (
+    LOSS_BUFFER,
+    LOSS_CHANNEL,
+    LOSS_DELAY_BUDGET,
+    FlowQos,
+    Packet,
+    RadioCell,
+)
 from scenario.nr import NrConfig
 
 GNB_HEIGHT_M = 1.5
@@ -77,6 +86,67 @@ def run_uplink_cameras(n_ues: int, rate_mbps: float, duration_s: float, *,
     cfg = config or NrConfig()
     gnb, ues = camera_layout(n_ues, cfg)
     cell = NrCell(cfg, gnb, ues, seed)
+    result = _drive_cameras(cell, list(ues), cfg, rate_mbps, duration_s, frame_rate, seed,
+                            warmup_s, delay_budget_us, packet_bytes)
+    ul = cell.stats()["ul"]
+    hist = np.array(ul["mcs_histogram"], dtype=float)
+    result["mcs_mean_ul"] = (float((hist * np.arange(hist.size)).sum() / hist.sum())
+                             if hist.sum() else None)
+    return result
+
+
+def hall_layout(n_gnbs: int, ues_per_gnb: int, seed: int, config: NrConfig | None = None,
+                reuse: int = 1, sub_scenario: str = "SL"
+                ) -> tuple[InfLayout, dict[str, tuple[float, float, float]]]:
+    """``n_gnbs`` gNBs of the InF lattice of the hall of ``config`` (a subset, docs/netsim.md)
+    on ``reuse``, and ``ues_per_gnb`` cameras ``camera-<i>`` dropped uniformly over the lattice
+    square of each gNB (pitch length/6 x width/3 around it, at least 1 m from it), UE height
+    1.5 m; drawn from the stream ``standalone/drop/<gnb id>``. Association (strongest RSRP)
+    keeps most of them with that gNB."""
+    cfg = config or NrConfig()
+    layout = InfLayout.lattice(sub_scenario, cfg.hall_length_m, cfg.hall_width_m,
+                               cfg.hall_height_m, n_gnbs, reuse)
+    px, py = cfg.hall_length_m / LATTICE_COLUMNS, cfg.hall_width_m / LATTICE_ROWS
+    ues: dict[str, tuple[float, float, float]] = {}
+    for gnb_id, (x, y, _) in zip(layout.gnb_ids, layout.gnb_positions_m, strict=True):
+        drop = drop_ues(ues_per_gnb, px, py, named_rng(seed, f"standalone/drop/{gnb_id}"),
+                        np.array([[px / 2, py / 2, 0.0]]), UE_HEIGHT_M)
+        for dx, dy, z in drop:
+            ues[f"camera-{len(ues)}"] = (round(float(x - px / 2 + dx), 3),
+                                         round(float(y - py / 2 + dy), 3), float(z))
+    return layout, ues
+
+
+def run_hall_cameras(n_gnbs: int, ues_per_gnb: int, rate_mbps: float, duration_s: float, *,
+                     reuse: int = 1, sub_scenario: str = "SL", frame_rate: float = 30.0,
+                     seed: int = 0, config: NrConfig | None = None,
+                     warmup_s: float | None = None) -> dict[str, Any]:
+    """The camera scenario on several cells (``netsim.nr.multicell.MultiCell``): the gNBs and
+    cameras of ``hall_layout``, each camera sending as in ``run_uplink_cameras``; its KPIs,
+    with the hall's PRB utilisation and UL BLER, the UL SINR percentiles and per gNB the UEs
+    served and the UL throughput."""
+    cfg = config or NrConfig()
+    layout, ues = hall_layout(n_gnbs, ues_per_gnb, seed, cfg, reuse, sub_scenario)
+    cell = MultiCell(cfg, layout, ues, seed)
+    result = _drive_cameras(cell, list(ues), cfg, rate_mbps, duration_s, frame_rate, seed,
+                            warmup_s, None, PACKET_BYTES)
+    st = cell.stats()
+    result.update(
+        gnbs=n_gnbs, reuse=reuse, n_prb=cell.n_cell_prb,
+        ul_sinr_db={q: st["ul"][f"sinr_db_{q}"] for q in ("p5", "p50", "p95")},
+        ues_per_gnb={f"gnb{g}": st[f"gnb{g}"]["ue_count"] for g in cell.cell_gnb},
+        gnb_ul_throughput_mbps={
+            f"gnb{g}": st[f"gnb{g}"]["ul"]["delivered_bytes"] * 8 / result["duration_s"] / 1e6
+            for g in cell.cell_gnb})
+    return result
+
+
+def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps: float,
+                   duration_s: float, frame_rate: float, seed: int, warmup_s: float | None,
+                   delay_budget_us: int | None, packet_bytes: int) -> dict[str, Any]:
+    """Drive ``cell`` with one camera per UE of ``ue_ids`` for ``duration_s``; the KPIs of
+    ``run_uplink_cameras`` but the MCS."""
+    n_ues = len(ue_ids)
     slot_us = cell.slot_us
     duration_us = int(round(duration_s * 1e6))
     n_slots = duration_us // slot_us
@@ -87,7 +157,6 @@ def run_uplink_cameras(n_ues: int, rate_mbps: float, duration_s: float, *,
     if frame_bytes % packet_bytes:
         sizes.append(frame_bytes % packet_bytes)
     period_us = 1e6 / frame_rate
-    ue_ids = list(ues)
     if delay_budget_us is not None:
         for ue in ue_ids:
             cell.set_flow_qos(ue, FlowQos(delay_budget_us=delay_budget_us))
@@ -142,10 +211,8 @@ def run_uplink_cameras(n_ues: int, rate_mbps: float, duration_s: float, *,
         len(sizes) * _frames_between(phase, period_us, slot_us, warmup_us, end_us)
         for phase in (f[3] for f in frames))
     lat = np.array(latencies_us, dtype=float) / 1000.0
-    stats = cell.stats()
-    ul = stats["ul"]
+    ul = cell.stats()["ul"]
     window_s = (end_us - warmup_us) / 1e6
-    hist = np.array(ul["mcs_histogram"], dtype=float)
     return {
         "ues": n_ues,
         "rate_mbps": rate_mbps,
@@ -173,8 +240,6 @@ def run_uplink_cameras(n_ues: int, rate_mbps: float, duration_s: float, *,
         "prb_utilisation_ul": ul["prb_utilisation"],
         "bler_ul": ul["bler_first_transmission"],
         "harq_retransmissions_ul": ul["harq_retransmissions"],
-        "mcs_mean_ul": float((hist * np.arange(hist.size)).sum() / hist.sum()) if hist.sum()
-        else None,
         "slots": n_slots,
         "wall_s": wall_s,
         "slots_per_second": n_slots / wall_s if wall_s > 0 else None,

@@ -167,6 +167,48 @@ class HallConfig(Strict):
                 for i in range(n)]
 
 
+AGV_SPEED_RANGE_M_S = (0.5, 2.0)
+
+
+class AgvConfig(Strict):
+    """Automated guided vehicles: moving radios driving closed routes over the hall floor, each
+    with an uplink video and a downlink control stream (docs/netsim.md, "Mobility and
+    handover"). They need several gNBs (``hall.inf_layout``)."""
+
+    count: int = Field(default=0, ge=0, le=128, description="number of AGVs; 0: none")
+    speed_m_s: float = Field(default=1.0, description="driving speed of every AGV, m/s "
+                             "(0.5 to 2)")
+    waypoints_m: list[tuple[float, float]] | None = Field(
+        default=None, min_length=2, description="one closed route (x, y) on the hall floor, "
+        "metres, driven by every AGV, spaced evenly along it; none: rectangular loops along the "
+        "aisles around the rows of work cells, AGVs shared out over them")
+    ul_rate_mbps: float = Field(default=8.5, gt=0, le=1000, description="uplink video of each "
+                                "AGV, Mbit/s (default: one work cell's camera stream)")
+    dl_rate_mbps: float = Field(default=0.096, gt=0, le=1000, description="downlink control "
+                                "stream of each AGV, Mbit/s (default: 100 pose-sized packets/s)")
+    ul_packet_bytes: int = Field(default=1500, ge=40, le=9000,
+                                 description="IP size of an uplink video packet, bytes")
+    dl_packet_bytes: int = Field(default=120, ge=40, le=9000,
+                                 description="IP size of a downlink control packet, bytes")
+
+    @field_validator("waypoints_m")
+    @classmethod
+    def _route_has_length(cls, points: list[tuple[float, float]] | None
+                          ) -> list[tuple[float, float]] | None:
+        if points is not None and len(set(points)) < 2:
+            raise ValueError("waypoints_m needs at least two different points: a route to drive")
+        return points
+
+    @field_validator("speed_m_s")
+    @classmethod
+    def _agv_speed(cls, speed: float) -> float:
+        lo, hi = AGV_SPEED_RANGE_M_S
+        if not lo <= speed <= hi:
+            raise ValueError(f"speed_m_s = {speed:g} m/s is outside the AGV speeds: allowed "
+                             f"{lo:g} to {hi:g} m/s")
+        return speed
+
+
 class WorkCellConfig(Strict):
     """One work cell: a conveyor belt bringing parts, its arm's pick zone (one control loop)."""
 
@@ -328,6 +370,67 @@ class PolicyConfig(Strict):
     guard_min_pdp: float = Field(default=0.1, gt=0, le=1, description="`guard`: the cap never falls below this")
 
 
+# TS 38.331 TimeToTrigger (ms) and FilterCoefficient (k of the layer-3 filter) values.
+TIME_TO_TRIGGER_MS = (0, 40, 64, 80, 100, 128, 160, 256, 320, 480, 512, 640, 1024, 1280, 2560,
+                      5120)
+FILTER_COEFFICIENTS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 13, 15, 17, 19)
+
+
+def _half_db(name: str, value: float) -> float:
+    """TS 38.331 signals offsets and hysteresis in steps of 0.5 dB."""
+    if (2 * value) != round(2 * value):
+        raise ValueError(f"{name} = {value:g} dB is not a multiple of 0.5 dB (TS 38.331 step)")
+    return value
+
+
+class HandoverConfig(Strict):
+    """Handover of moving radios between the gNBs of ``hall.inf_layout`` (docs/netsim.md,
+    "Mobility and handover"): layer-3 filtered RSRP (TS 38.331 5.5.3.2), event A3 held for the
+    time to trigger (5.5.4.4), then an interruption with the held packets forwarded or lost."""
+
+    filter_k: int = Field(default=4, description="layer-3 filter coefficient k, a = 1/2^(k/4) "
+                          "(TS 38.331 filterCoefficient: 0-9, 11, 13, 15, 17, 19; 0: no "
+                          "filtering; default fc4)")
+    a3_offset_db: float = Field(default=0.0, ge=-15, le=15, description="A3 offset Off, dB "
+                                "(TS 38.331 a3-Offset: -15 to 15 in 0.5 dB steps)")
+    hysteresis_db: float = Field(default=3.0, ge=0, le=15, description="A3 hysteresis Hys, dB "
+                                 "(TS 38.331 hysteresis: 0 to 15 in 0.5 dB steps)")
+    time_to_trigger_ms: int = Field(default=256, description="time the A3 entering condition "
+                                    "must hold before the handover, ms (a TS 38.331 "
+                                    "TimeToTrigger value)")
+    interruption_ms: float = Field(default=50.0, ge=0, le=1000, description="time a UE has no "
+                                   "cell during a handover, ms")
+    forward: bool = Field(default=True, description="the packets held for the UE in the source "
+                          "cell and those reaching it during the interruption go to the target "
+                          "cell (true) or are lost (false)")
+    measurement_period_ms: int = Field(default=20, ge=1, le=1000, description="time between "
+                                       "two RSRP measurements of a UE (the filter's input "
+                                       "rate), ms")
+    measurement_noise_db: float = Field(default=0.0, ge=0, le=10, description="standard "
+                                        "deviation of each RSRP measurement's error, dB")
+
+    @field_validator("filter_k")
+    @classmethod
+    def _filter_coefficient(cls, k: int) -> int:
+        if k not in FILTER_COEFFICIENTS:
+            raise ValueError(f"filter_k = {k} is not a TS 38.331 filterCoefficient: allowed "
+                             f"{', '.join(map(str, FILTER_COEFFICIENTS))}")
+        return k
+
+    @field_validator("time_to_trigger_ms")
+    @classmethod
+    def _time_to_trigger(cls, ttt: int) -> int:
+        if ttt not in TIME_TO_TRIGGER_MS:
+            raise ValueError(f"time_to_trigger_ms = {ttt} is not a TS 38.331 TimeToTrigger: "
+                             f"allowed {', '.join(map(str, TIME_TO_TRIGGER_MS))} ms")
+        return ttt
+
+    @field_validator("a3_offset_db", "hysteresis_db")
+    @classmethod
+    def _half_db_steps(cls, value: float, info: Any) -> float:
+        return _half_db(info.field_name, value)
+
+
 class NetsimConfig(Strict):
     model: Literal["nr", "simple"] = Field(
         default="nr", description="cell model: `nr` (5G NR system-level: channel, HARQ, link "
@@ -340,6 +443,9 @@ class NetsimConfig(Strict):
     dl_rate_mbps: float = Field(default=150.0, gt=0, description="`simple`: downlink capacity, Mbit/s")
     loss_probability: float = Field(default=0.0, ge=0, lt=1, description="`simple`: per-packet loss")
     buffer_bytes: int = Field(default=1_000_000, ge=1500, description="`simple`: sender buffer per UE, bytes")
+    handover: HandoverConfig = Field(
+        default_factory=HandoverConfig,
+        description="`nr` with `hall.inf_layout`: handover of moving radios (`agvs`) between gNBs")
 
     @model_validator(mode="after")
     def _nr_slot(self) -> NetsimConfig:
@@ -376,6 +482,8 @@ class Scenario(Strict):
     physics_timestep_us: int = Field(default=1000, ge=100, description="MuJoCo timestep, us")
     hall: HallConfig = Field(default_factory=HallConfig, description="hall layout")
     work_cell: WorkCellConfig = Field(default_factory=WorkCellConfig, description="the work cells (every loop's)")
+    agvs: AgvConfig = Field(default_factory=AgvConfig,
+                            description="AGVs, moving radios (need hall.inf_layout)")
     camera: CameraConfig = Field(default_factory=CameraConfig, description="cameras")
     robot: RobotConfig = Field(default_factory=RobotConfig, description="robot controllers")
     edge: EdgeConfig = Field(default_factory=EdgeConfig, description="Edge application")
@@ -409,8 +517,26 @@ class Scenario(Strict):
             )
         self._hall_into_nr()
         self._cells_in_hall()
+        if self.hall.inf_layout is not None and self.netsim.model != "nr":
+            raise ValueError(
+                f"hall.inf_layout needs netsim.model = nr (the simple model has one cell), got "
+                f"{self.netsim.model}")
         if self.robot.control_period_us % self.physics_timestep_us:
             raise ValueError("robot.control_period_us must be a multiple of physics_timestep_us")
+        return self
+
+    @model_validator(mode="after")
+    def _agvs_in_hall(self) -> Scenario:
+        agvs, hall = self.agvs, self.hall
+        if agvs.count and hall.inf_layout is None:
+            raise ValueError(
+                f"agvs.count = {agvs.count} needs several gNBs to hand over between: set "
+                f"hall.inf_layout (or agvs.count = 0)")
+        for i, (x, y) in enumerate(agvs.waypoints_m or ()):
+            if not (0 <= x <= hall.length_m and 0 <= y <= hall.width_m):
+                raise ValueError(
+                    f"agvs.waypoints_m[{i}] = ({x:g}, {y:g}) m lies outside the hall floor "
+                    f"(0..{hall.length_m:g} x 0..{hall.width_m:g} m): every waypoint must lie on it")
         return self
 
     def _cells_in_hall(self) -> None:

@@ -159,7 +159,40 @@ def normal_cdf(z: np.ndarray) -> np.ndarray:
     return _normal_cdf(z.ravel()).reshape(z.shape)
 
 
-class InfSlChannel:
+class SubbandGains:
+    """What a cell's CSI and counters read of its channel (``netsim.nr.csi``), per UE of the cell:
+    ``gain[u, sb]`` (also ``gain_row(u)[sb]``), the small-scale power gain (mean 1) on subband
+    ``sb`` of ``n_subbands``; ``ul_snr_fullband`` / ``dl_snr``, the mean linear SNR per PRB with
+    the UE's (UL) or the gNB's (DL) whole power spread over every PRB of the carrier, and in dB
+    ``ul_snr_fullband_db`` / ``dl_snr_db``; ``los`` and ``d3d_m`` (m) of the link. Implemented by
+    ``InfSlChannel`` (one gNB) and ``netsim.nr.link_fading.ServingLinks`` (a gNB among several).
+    """
+
+    n_ue: int
+    n_subbands: int
+    gain: np.ndarray
+    ul_snr_fullband: list[float]
+    dl_snr: list[float]
+    ul_snr_fullband_db: np.ndarray
+    dl_snr_db: np.ndarray
+    los: np.ndarray
+    d3d_m: np.ndarray
+    _rows: list[list[float] | None]
+
+    def gain_row(self, ue: int) -> list[float]:
+        """Subband gains of ``ue`` as a Python list (fast scalar access), converted on demand:
+        most slots only touch the UEs they schedule."""
+        row = self._rows[ue]
+        if row is None:
+            row = self._rows[ue] = self.gain[ue].tolist()
+        return row
+
+    def advance(self, slot: int) -> bool:
+        """Bring the fading to slot index ``slot``; True if the gains changed."""
+        raise NotImplementedError
+
+
+class InfSlChannel(SubbandGains):
     """Channel between one gNB and a fixed set of UEs, advanced slot by slot.
 
     After ``advance(slot)``: ``gain[u, sb]`` (also ``gain_row(u)[sb]``) is the small-scale power
@@ -268,15 +301,7 @@ class InfSlChannel:
         if self._fading:
             h = self._los_term + self._diffuse_amp * self._diffuse
             self.gain = h.real**2 + h.imag**2
-        self._rows: list[list[float] | None] = [None] * self.n_ue
-
-    def gain_row(self, ue: int) -> list[float]:
-        """Subband gains of ``ue`` as a Python list (fast scalar access), converted on demand:
-        most slots only touch the UEs they schedule."""
-        row = self._rows[ue]
-        if row is None:
-            row = self._rows[ue] = self.gain[ue].tolist()
-        return row
+        self._rows = [None] * self.n_ue
 
     def advance(self, slot: int) -> bool:
         """Bring the fading to ``slot``; True if the gains changed.

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from netsim.nr.buffers import SenderBuffer
-from netsim.nr.channel import InfSlChannel
+from netsim.nr.channel import SubbandGains
 from netsim.nr.harq import TransportBlock
 from netsim.nr.link_adaptation import LinkAdaptation
 from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET
@@ -52,7 +52,7 @@ class CellCounters:
 
     def report(self, slot_us: int, n_prb: int, ue_ids: list[str], ul_buf: list[SenderBuffer],
                dl_buf: list[SenderBuffer], la_ul: LinkAdaptation, la_dl: LinkAdaptation,
-               channel: InfSlChannel) -> dict[str, Any]:
+               channel: SubbandGains) -> dict[str, Any]:
         """``NrCell.stats()``: cell totals, per-link HARQ/LA figures and per-UE bytes and
         buffers. ``slot_us``: slot duration (us); ``n_prb``: PRBs of the carrier; ``ue_ids``:
         the UE names by index; ``ul_buf``/``dl_buf``, ``la_ul``/``la_dl``: the sender buffers

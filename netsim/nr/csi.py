@@ -9,7 +9,7 @@ from itertools import repeat
 
 import numpy as np
 
-from netsim.nr.channel import InfSlChannel
+from netsim.nr.channel import SubbandGains
 from netsim.nr.link_adaptation import LinkAdaptation
 from netsim.nr.phy import PhyAbstraction
 from scenario.nr import NrConfig
@@ -24,7 +24,7 @@ class Csi:
     ``rate_dl`` (bits per PRB at that MCS), ``ul_max_prb`` (power-headroom cap of an UL
     allocation, PRBs); refreshed lazily, when a link schedules after a channel update."""
 
-    def __init__(self, cfg: NrConfig, channel: InfSlChannel, phy: PhyAbstraction,
+    def __init__(self, cfg: NrConfig, channel: SubbandGains, phy: PhyAbstraction,
                  la_ul: LinkAdaptation, la_dl: LinkAdaptation, max_mcs: int) -> None:
         n = channel.n_ue
         self.n_ue = n
@@ -72,7 +72,14 @@ class Csi:
         cached = self.eesm_cache.get(key)
         if cached is not None:
             return cached
-        scale = self.ul_snr[u] * self.n_prb / n if ul else self.dl_snr[u]
+        value = self.eesm_scaled(u, p0, n, mcs,
+                                 self.ul_snr[u] * self.n_prb / n if ul else self.dl_snr[u])
+        self.eesm_cache[key] = value
+        return value
+
+    def eesm_scaled(self, u: int, p0: int, n: int, mcs: int, scale: float) -> float:
+        """Effective SINR (linear) of UE index ``u`` on PRBs [``p0``, ``p0`` + ``n``) with the
+        EESM beta of ``mcs``, when its mean SINR per PRB before fading is ``scale`` (linear)."""
         size = self.sb
         row = self.channel.gain_row(u)
         sb0 = p0 // size
@@ -92,7 +99,6 @@ class Csi:
                 acc += ((hi if hi < end else end) - (lo if lo > p0 else p0)) * exp(
                     (gmin - row[sb]) * c)
             value = scale * gmin - beta * math.log(acc / n)
-        self.eesm_cache[key] = value
         return value
 
     def update_wideband(self, ul: bool) -> None:
@@ -102,10 +108,7 @@ class Csi:
         la = self.la_ul if ul else self.la_dl
         snr = (self.ul_snr_arr if ul else self.dl_snr_arr)[:, None] * g
         last_mcs = la.last_mcs
-        beta = self.beta_arr[last_mcs][:, None]
-        smin = snr.min(axis=1, keepdims=True)
-        eff = smin[:, 0] - beta[:, 0] * np.log(
-            np.exp((smin - snr) / beta) @ self.subband_weights)
+        eff = self.wideband_eesm(snr, last_mcs)
         # The same numbers as eesm for a full-carrier allocation: a backlogged UE usually
         # gets exactly that, so the per-slot EESM becomes a cache hit.
         n_ue, n_prb = self.n_ue, self.n_prb
@@ -113,23 +116,47 @@ class Csi:
                    strict=True)
         self.eesm_cache.update(zip(keys, eff.tolist(), strict=True))
         snr_db = 10 * np.log10(np.maximum(eff, 1e-12)) - np.array(la.offset_db)
-        top = self.max_mcs
-        mcs = [0 if m < 0 else (top if m > top else m) for m in (
-            np.searchsorted(self.wb_threshold_db, snr_db, side="right") - 1).tolist()]
+        mcs = self.wideband_mcs(snr_db)
         if ul:
-            table = self.rate_by_mcs_ul
-            self.mcs_wb_ul, self.rate_ul = mcs, [table[m] for m in mcs]
             # Power headroom: spreading the UE's power over more PRBs than this would push the
             # SNR per PRB below what MCS 0 needs (plus a margin), wasting the extra PRBs.
-            floor_db = self.wb_threshold_db[0] + POWER_LIMIT_MARGIN_DB
-            self.ul_max_prb = [
-                n_prb if x >= n_prb else max(1, int(x))
-                for x in (n_prb * 10 ** ((snr_db - floor_db) / 10)).tolist()]
-            self.stale_ul = False
+            self.set_uplink(mcs, n_prb * 10 ** ((snr_db - self.power_floor_db()) / 10))
         else:
-            table = self.rate_by_mcs_dl
-            self.mcs_wb_dl, self.rate_dl = mcs, [table[m] for m in mcs]
-            self.stale_dl = False
+            self.set_downlink(mcs)
+
+    def wideband_eesm(self, snr: np.ndarray, last_mcs: list[int]) -> np.ndarray:
+        """EESM (linear) over the whole carrier of each UE's subband SINRs ``snr`` (n_ue,
+        n_subbands; linear), with the beta of its MCS in ``last_mcs``."""
+        beta = self.beta_arr[last_mcs][:, None]
+        smin = snr.min(axis=1, keepdims=True)
+        return smin[:, 0] - beta[:, 0] * np.log(
+            np.exp((smin - snr) / beta) @ self.subband_weights)
+
+    def wideband_mcs(self, snr_db: np.ndarray) -> list[int]:
+        """The highest MCS per UE whose long-block threshold lies under ``snr_db`` (dB, OLLA
+        offset already taken off), within 0..max_mcs."""
+        top = self.max_mcs
+        return [0 if m < 0 else (top if m > top else m) for m in (
+            np.searchsorted(self.wb_threshold_db, snr_db, side="right") - 1).tolist()]
+
+    def power_floor_db(self) -> float:
+        """SNR per PRB (dB) an UL allocation keeps: the MCS-0 threshold plus a margin."""
+        return float(self.wb_threshold_db[0]) + POWER_LIMIT_MARGIN_DB
+
+    def set_uplink(self, mcs: list[int], max_prb: np.ndarray) -> None:
+        """The UL wideband MCS per UE, its rate, and the power-headroom cap from ``max_prb``
+        (PRBs, real, per UE; at least 1, at most the carrier)."""
+        n_prb = self.n_prb
+        table = self.rate_by_mcs_ul
+        self.mcs_wb_ul, self.rate_ul = mcs, [table[m] for m in mcs]
+        self.ul_max_prb = [n_prb if x >= n_prb else max(1, int(x)) for x in max_prb.tolist()]
+        self.stale_ul = False
+
+    def set_downlink(self, mcs: list[int]) -> None:
+        """The DL wideband MCS per UE and its rate."""
+        table = self.rate_by_mcs_dl
+        self.mcs_wb_dl, self.rate_dl = mcs, [table[m] for m in mcs]
+        self.stale_dl = False
 
     def prbs_for(self, need_bits: int, mcs: int, n_re: int, available: int) -> int:
         """Fewest PRBs whose TBS at ``mcs`` with ``n_re`` data RE per PRB carries ``need_bits``
@@ -141,3 +168,102 @@ class Csi:
         while n < available and fmt(n, mcs, n_re).tbs_bits < need_bits:
             n += 1
         return n
+
+
+# Weight of the newest measurement in a UE's interference estimate (an exponential average over
+# its transmissions). A power of two: with no interference the estimate stays exactly 1.
+INTERFERENCE_FILTER = 0.25
+
+
+class InterferenceCsi(Csi):
+    """Channel knowledge of a gNB among several on one carrier (``netsim.nr.multicell``): the
+    ``Csi`` of ``channel`` (the links to its own UEs) with UL open-loop power control and an
+    estimate of the interference per UE and link.
+
+    ``ul_pc_snr[u]``: the mean SNR per PRB (linear) of UE index ``u`` at its power-control target
+    P0 + alpha PL (TS 38.213 7.1.1), met on as many PRBs as P_CMAX allows; beyond, the UE's
+    P_CMAX spreads over its PRBs as in one cell (``ul_scale``). ``ipn_ul``/``ipn_dl``: per UE,
+    interference plus noise over noise (linear, >= 1), the starting estimates; each
+    transmission's measured value then moves them (``measured``). Link adaptation, the
+    wideband MCS and the power cap divide the SNR by the estimates of the last ``report`` (a
+    periodic CSI report), so that allocations repeating between reports hit the EESM cache.
+    """
+
+    def __init__(self, cfg: NrConfig, channel: SubbandGains, phy: PhyAbstraction,
+                 la_ul: LinkAdaptation, la_dl: LinkAdaptation, max_mcs: int,
+                 ul_pc_snr: list[float], ipn_ul: list[float], ipn_dl: list[float]) -> None:
+        super().__init__(cfg, channel, phy, la_ul, la_dl, max_mcs)
+        self.ul_pc_snr = ul_pc_snr
+        self.ipn_ul = ipn_ul
+        self.ipn_dl = ipn_dl
+        self._reported_ul: list[float] = []
+        self._reported_dl: list[float] = []
+        self._pc_over_ipn: list[float] = []
+        self._full_over_ipn: list[float] = []
+        self._dl_over_ipn: list[float] = []
+        self.report()
+
+    def report(self) -> None:
+        """A CSI report: from now on link adaptation and the wideband MCS see the interference
+        estimates as they are now (nothing changes if they have not moved)."""
+        if self.ipn_ul == self._reported_ul and self.ipn_dl == self._reported_dl:
+            return
+        self._reported_ul = ul = list(self.ipn_ul)
+        self._reported_dl = dl = list(self.ipn_dl)
+        self._pc_over_ipn = [x / i for x, i in zip(self.ul_pc_snr, ul, strict=True)]
+        self._full_over_ipn = [x / i for x, i in zip(self.ul_snr, ul, strict=True)]
+        self._dl_over_ipn = [x / i for x, i in zip(self.dl_snr, dl, strict=True)]
+        self.channel_changed()
+
+    def ul_scale(self, u: int, n: int) -> float:
+        """Mean SNR per PRB (linear, before fading and interference) of UE index ``u``'s PUSCH
+        on ``n`` PRBs: its power-control target, or P_CMAX spread over the n PRBs if lower."""
+        full = self.ul_snr[u] * self.n_prb / n
+        pc = self.ul_pc_snr[u]
+        return pc if pc < full else full
+
+    def eesm(self, u: int, p0: int, n: int, mcs: int, ul: bool) -> float:
+        """``Csi.eesm`` with UL power control and the reported interference estimate."""
+        key = (u, p0, n, mcs, ul)
+        cached = self.eesm_cache.get(key)
+        if cached is not None:
+            return cached
+        if ul:
+            full = self._full_over_ipn[u] * self.n_prb / n
+            pc = self._pc_over_ipn[u]
+            scale = pc if pc < full else full
+        else:
+            scale = self._dl_over_ipn[u]
+        value = self.eesm_scaled(u, p0, n, mcs, scale)
+        self.eesm_cache[key] = value
+        return value
+
+    def measured(self, u: int, ul: bool, inr: float) -> None:
+        """A transmission of UE index ``u`` (uplink if ``ul``) met a mean interference over
+        noise ``inr`` (linear) on its PRBs: the UE's estimate moves towards 1 + ``inr``."""
+        ipn = self.ipn_ul if ul else self.ipn_dl
+        ipn[u] += INTERFERENCE_FILTER * (1.0 + inr - ipn[u])
+
+    def update_wideband(self, ul: bool) -> None:
+        """``Csi.update_wideband`` with UL power control and the reported interference. The UL
+        power cap: the SNR per PRB stays at the power-control target up to where P_CMAX binds,
+        then falls as the power spreads; the cap is where it falls below the floor (1 PRB when
+        the target itself is below it)."""
+        la = self.la_ul if ul else self.la_dl
+        if ul:
+            pc = np.array(self._pc_over_ipn)
+            full = np.array(self._full_over_ipn)
+            base = np.minimum(pc, full)
+        else:
+            base = np.array(self._dl_over_ipn)
+        eff = self.wideband_eesm(base[:, None] * self.channel.gain, la.last_mcs)
+        snr_db = 10 * np.log10(np.maximum(eff, 1e-12)) - np.array(la.offset_db)
+        mcs = self.wideband_mcs(snr_db)
+        if not ul:
+            self.set_downlink(mcs)
+            return
+        floor_db = self.power_floor_db()
+        target_db = snr_db + 10 * np.log10(pc / base)
+        spread_db = snr_db + 10 * np.log10(full / base)
+        self.set_uplink(mcs, np.where(target_db < floor_db, 1.0,
+                                      self.n_prb * 10 ** ((spread_db - floor_db) / 10)))

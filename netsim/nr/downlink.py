@@ -4,6 +4,7 @@ their decoding and the gNB's reading of the HARQ-ACK that comes back K1 slots la
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 from netsim.nr.buffers import SenderBuffer
 from netsim.nr.counters import CellCounters
@@ -47,6 +48,13 @@ class Downlink:
 
     def run(self, s: int) -> None:
         """Assign, send and decode the PDSCH of slot index ``s`` (K0 = 0)."""
+        for tb, start in self.assign(s):
+            self.transmit(s, tb, start)
+
+    def assign(self, s: int) -> Iterator[tuple[TransportBlock, int]]:
+        """The PDSCH assignments of slot index ``s`` (K0 = 0), retransmissions first: each TB
+        with its first PRB. Taken one at a time, ``run`` sends each before the next is made, as
+        the slot goes; a cell among several takes them all before any is decoded."""
         cfg = self.config
         n_prb = self.n_prb
         harq = self.harq
@@ -55,7 +63,7 @@ class Downlink:
         count = 0
         taken: set[int] = set()
         for tb, start in harq.take_due(s, max_ues, pos, n_prb, taken):
-            self._transmit(s, tb, start)
+            yield tb, start
             pos = start + tb.n_prb
             count += 1
         if not self.active or count >= max_ues or pos >= n_prb:
@@ -91,12 +99,14 @@ class Downlink:
                                 queued - buf.bytes)
             harq.occupy(u)
             self.sched.served(u, fmt.tbs_bits, s)
-            self._transmit(s, tb, pos)
+            yield tb, pos
             pos += n
             count += 1
 
-    def _transmit(self, s: int, tb: TransportBlock, p0: int) -> None:
-        """One PDSCH transmission of ``tb`` at PRB ``p0`` and the gNB's reading of its ACK."""
+    def transmit(self, s: int, tb: TransportBlock, p0: int, sinr: float | None = None) -> bool:
+        """One PDSCH transmission of ``tb`` at PRB ``p0`` in slot index ``s`` and the gNB's
+        reading of its ACK; ``sinr``: its effective SINR (linear), None for the one the CSI
+        gives (no interference). Whether the UE decoded it."""
         cfg = self.config
         harq = self.harq
         counters = self.counters
@@ -113,8 +123,9 @@ class Downlink:
                 harq.release_later(u, ready)
             else:
                 self.outcomes.after_failure(tb, ready, harq, False)
-            return
-        sinr = self.csi.eesm(u, p0, tb.n_prb, tb.mcs, False)
+            return False
+        if sinr is None:
+            sinr = self.csi.eesm(u, p0, tb.n_prb, tb.mcs, False)
         eff = harq.combine(tb, sinr)
         if tb.decoded:
             ok = True  # a retransmission caused by a lost ACK: the UE already has the TB
@@ -136,3 +147,4 @@ class Downlink:
             harq.release_later(u, ready)
         else:
             self.outcomes.after_failure(tb, ready, harq, False)
+        return ok

@@ -1,6 +1,7 @@
 """Large-scale channel of every (UE, gNB) link in a multi-gNB InF hall (TR 38.901 7.4-7.6):
 distances, LOS state, path loss, shadowing and coupling loss as (n_ue, n_gnb) arrays, from
-spatially consistent maps of each gNB.
+spatially consistent maps of each gNB; for UEs that move, the maps drawn once and read at each
+new position (``InfMaps``).
 """
 
 from __future__ import annotations
@@ -85,3 +86,93 @@ class InfLinks:
             self.shadowing_db = np.zeros(shape)
         self.coupling_loss_db = (self.pathloss_db + self.shadowing_db - gnb_antenna_gain_dbi
                                  - ue_antenna_gain_dbi)
+
+
+class InfMaps:
+    """The LOS and shadowing maps of every gNB of ``layout``, drawn once and read at any UE
+    positions: the large scale of UEs that move.
+
+    The maps, the streams they are drawn from and the way a position reads them (the nearest
+    point of the 1 m grid) are those of ``InfLinks``, so ``links(p)`` equals
+    ``InfLinks(layout, p, ...)`` with the same arguments, at any time and for any set of UEs: an
+    AGV that stops where a static UE stands sees that UE's large scale (spatially consistent,
+    TR 38.901 7.6.3). Arguments as ``InfLinks``.
+    """
+
+    def __init__(self, layout: InfLayout, carrier_hz: float, seed: int,
+                 stream_prefix: str = "inf", gnb_antenna_gain_dbi: float = 0.0,
+                 ue_antenna_gain_dbi: float = 0.0, los_mode: str = "stochastic",
+                 shadowing_enabled: bool = True) -> None:
+        if los_mode not in ("stochastic", "los", "nlos"):
+            raise ValueError(f"los_mode {los_mode!r} is not stochastic, los or nlos")
+        self.layout = layout
+        self.carrier_hz = carrier_hz
+        self.gnb_antenna_gain_dbi = gnb_antenna_gain_dbi
+        self.ue_antenna_gain_dbi = ue_antenna_gain_dbi
+        self.los_mode = los_mode
+        self.shadowing_enabled = shadowing_enabled
+        self.nx = int(math.floor(layout.hall_length_m / FIELD_STEP_M)) + 1
+        self.ny = int(math.floor(layout.hall_width_m / FIELD_STEP_M)) + 1
+        sub = layout.sub_scenario
+
+        def fields(name: str, decorrelation_m: float) -> np.ndarray:
+            return np.stack([
+                exponential_field(self.nx, self.ny, FIELD_STEP_M, decorrelation_m,
+                                  named_rng(seed, f"{stream_prefix}/{g}/{name}"))
+                for g in layout.gnb_ids])
+
+        # (n_gnb, nx, ny) each; only the maps the modes read are drawn (each from its own
+        # stream, so which are drawn changes none of the others).
+        self._los_field = (fields("los-field", sub.los_correlation_m)
+                           if los_mode == "stochastic" else None)
+        corr = sub.shadowing_decorrelation_m
+        self._sf_los = fields("shadowing-los", corr) if shadowing_enabled else None
+        self._sf_nlos = fields("shadowing-nlos", corr) if shadowing_enabled else None
+
+    def links(self, ue_positions_m: np.ndarray | Sequence[Sequence[float]]) -> InfLinkState:
+        """The large scale of every link between ``ue_positions_m`` (n_ue, 3), metres, and the
+        gNBs."""
+        return InfLinkState(self, np.asarray(ue_positions_m, dtype=float).reshape(-1, 3))
+
+    def coupling_loss_db(self, ue_positions_m: np.ndarray | Sequence[Sequence[float]]
+                         ) -> np.ndarray:
+        """Coupling loss of every link, dB, shape (n_ue, n_gnb)."""
+        return self.links(ue_positions_m).coupling_loss_db
+
+
+class InfLinkState:
+    """The large scale read from ``InfMaps`` at one set of UE positions: the attributes of
+    ``InfLinks`` (``d2d_m``, ``d3d_m``, ``los_probability``, ``los``, ``pathloss_db``,
+    ``shadowing_db``, ``coupling_loss_db``, each (n_ue, n_gnb))."""
+
+    def __init__(self, maps: InfMaps, ue: np.ndarray) -> None:
+        layout = maps.layout
+        sub = layout.sub_scenario
+        gnb = layout.gnb_positions_m
+        self.layout = layout
+        self.n_ue, self.n_gnb = len(ue), len(gnb)
+        delta = ue[:, None, :] - gnb[None, :, :]
+        self.d2d_m = np.hypot(delta[..., 0], delta[..., 1])
+        self.d3d_m = np.sqrt(self.d2d_m**2 + delta[..., 2] ** 2)
+        self.los_probability = inf_los_probability(
+            sub.name, self.d2d_m, sub.clutter_density, sub.clutter_size_m, sub.clutter_height_m,
+            gnb[None, :, 2], ue[:, None, 2])
+        ix = np.clip(np.rint(ue[:, 0] / FIELD_STEP_M).astype(int), 0, maps.nx - 1)
+        iy = np.clip(np.rint(ue[:, 1] / FIELD_STEP_M).astype(int), 0, maps.ny - 1)
+
+        def read(f: np.ndarray) -> np.ndarray:
+            return f[:, ix, iy].T  # (n_ue, n_gnb)
+
+        shape = (self.n_ue, self.n_gnb)
+        if maps._los_field is None:
+            self.los = np.full(shape, maps.los_mode == "los")
+        else:
+            self.los = normal_cdf(read(maps._los_field)) < self.los_probability
+        self.pathloss_db = inf_pathloss_db(sub.name, self.d3d_m, maps.carrier_hz, self.los)
+        if maps._sf_los is not None and maps._sf_nlos is not None:
+            self.shadowing_db = np.where(self.los, sub.los_shadowing_std_db * read(maps._sf_los),
+                                         sub.nlos_shadowing_std_db * read(maps._sf_nlos))
+        else:
+            self.shadowing_db = np.zeros(shape)
+        self.coupling_loss_db = (self.pathloss_db + self.shadowing_db
+                                 - maps.gnb_antenna_gain_dbi - maps.ue_antenna_gain_dbi)

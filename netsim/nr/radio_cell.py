@@ -13,7 +13,7 @@ import numpy as np
 from fabric.seeding import rng as named_rng
 from netsim.nr.arrivals import Arrivals
 from netsim.nr.buffers import SenderBuffer
-from netsim.nr.channel import InfSlChannel
+from netsim.nr.channel import InfSlChannel, SubbandGains
 from netsim.nr.counters import CellCounters
 from netsim.nr.csi import Csi
 from netsim.nr.downlink import Downlink
@@ -35,12 +35,13 @@ class NrCell(RadioCell):
     position) are (x, y, z) in metres inside the hall of ``config`` (``hall_length_m`` x
     ``hall_width_m`` x ``hall_height_m``); the UE ids are the ``Packet.ue`` values. ``seed`` is
     the run's root seed: every random stream is derived from it by name, ``stream_prefix``
-    then ``/<component>``, so the same seed gives the same outcomes.
+    then ``/<component>``, so the same seed gives the same outcomes. ``channel``: the UEs'
+    channel, in ``ue_positions_m`` order (None: the InF-SL channel of ``config``, drawn here).
     """
 
     def __init__(self, config: NrConfig, gnb_position_m: tuple[float, float, float],
                  ue_positions_m: Mapping[str, tuple[float, float, float]], seed: int,
-                 stream_prefix: str = "netsim/nr") -> None:
+                 stream_prefix: str = "netsim/nr", channel: SubbandGains | None = None) -> None:
         cfg = config
         self.config = cfg
         self.slot_us = cfg.slot_us
@@ -53,7 +54,7 @@ class NrCell(RadioCell):
         self._index = {ue: i for i, ue in enumerate(self.ue_ids)}
         n = len(self.ue_ids)
         self.n_ue = n
-        self.channel = InfSlChannel(
+        self.channel: SubbandGains = channel if channel is not None else InfSlChannel(
             cfg, gnb_position_m, self.ue_ids,
             np.array([ue_positions_m[u] for u in self.ue_ids], dtype=float), seed, stream_prefix)
         self.phy = phy = PhyAbstraction(cfg.mcs_table)
@@ -75,7 +76,7 @@ class NrCell(RadioCell):
         self._urgency = [1.0] * n
         rand_ctrl = Uniforms(named_rng(seed, f"{stream_prefix}/control"))
         self._counters = counters = CellCounters(n, phy.max_mcs)
-        self._csi = csi = Csi(cfg, self.channel, phy, self._la_ul, self._la_dl, max_mcs)
+        self._csi = csi = self._make_csi(phy, max_mcs)
         self._outcomes = outcomes = Outcomes(self._ul_buf, self._dl_buf, counters)
         self._ul = Uplink(
             cfg, phy, self._harq_ul, self._la_ul,
@@ -92,6 +93,10 @@ class NrCell(RadioCell):
         self._k2 = cfg.k2_slots
         self._last_slot: int | None = None
 
+    def _make_csi(self, phy: PhyAbstraction, max_mcs: int) -> Csi:
+        """The cell's channel knowledge (ideal CSI of its channel, no interference)."""
+        return Csi(self.config, self.channel, phy, self._la_ul, self._la_dl, max_mcs)
+
     # ------------------------------------------------------------------ interface
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
         """Put ``packet`` in its sender buffer (UL: its UE's, DL: the gNB's for its UE) from its
@@ -106,6 +111,22 @@ class NrCell(RadioCell):
     def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
         """Simulate the slot starting at ``slot_start_us`` (us, a multiple of ``slot_us``, later
         than the last slot run); the outcomes decided in it (deliveries at its end, losses)."""
+        s = self._open_slot(slot_start_us)
+        out = self._outcomes.out
+        ul = self._ul
+        # PDCCH, then the data symbols in air order: PDSCH, PUSCH, PUCCH.
+        if ul.known or self._harq_ul.pending():
+            ul.schedule(s, s + self._k2)
+        if self._dl.active or self._harq_dl.pending():
+            self._dl.run(s)
+        ul.run_pusch(s)
+        self._close_slot(s)
+        return out
+
+    def _open_slot(self, slot_start_us: int) -> int:
+        """The start of the slot at ``slot_start_us`` (us; checked as ``run_slot`` says), before
+        its PDCCH: packets entering, the channel moving, discards, HARQ processes freed. Its
+        outcomes go to a new list, ``self._outcomes.out``; returns the slot index."""
         slot_us = self.slot_us
         if slot_start_us % slot_us:
             raise ValueError(f"slot_start_us={slot_start_us} is not a multiple of the slot "
@@ -132,17 +153,15 @@ class NrCell(RadioCell):
         if arrivals.deadlines and arrivals.deadlines[0][0] < end:
             arrivals.discard_expired(end, out)
         self._harq_dl.release_due(s)
-        # PDCCH, then the data symbols in air order: PDSCH, PUSCH, PUCCH.
-        if ul.known or self._harq_ul.pending():
-            ul.schedule(s, s + self._k2)
-        if self._dl.active or self._harq_dl.pending():
-            self._dl.run(s)
-        ul.run_pusch(s)
+        return s
+
+    def _close_slot(self, s: int) -> None:
+        """The end of slot index ``s``, after its data symbols: the PUCCH and the counters."""
+        ul = self._ul
         if ul.sr_candidates:
             ul.run_pucch(s)
         self._counters.slots += 1
-        arrivals.next_slot_us = end
-        return out
+        self._arrivals.next_slot_us = (s + 1) * self.slot_us
 
     def has_pending(self) -> bool:
         """True while any buffer, grant or HARQ process holds data, i.e. the next slot has work."""

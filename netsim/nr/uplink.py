@@ -18,7 +18,7 @@ from netsim.nr.scheduler import Scheduler
 from scenario.nr import NrConfig
 
 
-class _Grant:
+class Grant:
     """An UL grant: PRBs and format of one PUSCH, decided K2 slots before it is sent."""
 
     __slots__ = ("ue", "prb_start", "n_prb", "mcs", "tbs_bits", "cbs_bits", "n_cb",
@@ -77,7 +77,7 @@ class Uplink:
         self.ue_grants = [0] * n  # new-transmission grants in the pipeline, per UE
         self.ue_grant_bytes = [0] * n
         self.sr_candidates: set[int] = set()  # UEs with a triggered BSR and no grant yet
-        self.pipeline: dict[int, list[_Grant]] = {}  # PUSCH slot -> grants
+        self.pipeline: dict[int, list[Grant]] = {}  # PUSCH slot -> grants
 
     def schedule(self, s: int, target: int) -> None:
         """PDCCH of slot index ``s``: grants for the PUSCH of slot index ``target``."""
@@ -85,7 +85,7 @@ class Uplink:
         n_prb = self.n_prb
         harq = self.harq
         csi = self.csi
-        grants: list[_Grant] = []
+        grants: list[Grant] = []
         pos = 0
         taken: set[int] = set()
         if self.configured_grant:
@@ -94,9 +94,9 @@ class Uplink:
         max_ues = cfg.max_ul_ues_per_slot
         count = 0
         for tb, start in harq.take_due(s, max_ues, pos, n_prb, taken):
-            grants.append(_Grant(tb.ue, start, tb.n_prb, tb.mcs, tb.tbs_bits, tb.cbs_bits,
-                                 tb.n_cb, 0, tb, self.rand_ctrl() < cfg.pdcch_miss_prob,
-                                 False, False))
+            grants.append(Grant(tb.ue, start, tb.n_prb, tb.mcs, tb.tbs_bits, tb.cbs_bits,
+                                tb.n_cb, 0, tb, self.rand_ctrl() < cfg.pdcch_miss_prob,
+                                False, False))
             pos = start + tb.n_prb
             count += 1
         if self.known and count < max_ues and pos < n_prb:
@@ -119,9 +119,9 @@ class Uplink:
                 payload = fmt.tbs_bits // 8 - cfg.bsr_bytes
                 if payload <= 0:
                     continue
-                grants.append(_Grant(u, pos, n, mcs, fmt.tbs_bits, fmt.cbs_bits, fmt.n_cb,
-                                     payload, None, self.rand_ctrl() < cfg.pdcch_miss_prob,
-                                     from_sr, False))
+                grants.append(Grant(u, pos, n, mcs, fmt.tbs_bits, fmt.cbs_bits, fmt.n_cb,
+                                    payload, None, self.rand_ctrl() < cfg.pdcch_miss_prob,
+                                    from_sr, False))
                 gnb_bytes[u] = max(0, gnb_bytes[u] - payload)
                 self.gnb_sr[u] = False
                 if gnb_bytes[u] == 0:
@@ -143,7 +143,7 @@ class Uplink:
         fit = self.n_prb // cfg.cg_prb
         return [u for u in range(self.n_ue) if (slot + u) % period == 0][:fit]
 
-    def _configured_grants(self, s: int) -> list[_Grant]:
+    def _configured_grants(self, s: int) -> list[Grant]:
         """The configured-grant PUSCHs of slot ``s``, for UEs with data to send (an unused
         occasion stays empty); MCS by link adaptation, as if the gNB kept reconfiguring it."""
         cfg = self.config
@@ -155,8 +155,8 @@ class Uplink:
             pos = i * cfg.cg_prb
             mcs = self._mcs(u, pos, cfg.cg_prb)
             fmt = self.phy.tb_format(cfg.cg_prb, mcs, self.re)
-            grants.append(_Grant(u, pos, cfg.cg_prb, mcs, fmt.tbs_bits, fmt.cbs_bits, fmt.n_cb,
-                                 fmt.tbs_bits // 8 - cfg.bsr_bytes, None, False, False, True))
+            grants.append(Grant(u, pos, cfg.cg_prb, mcs, fmt.tbs_bits, fmt.cbs_bits, fmt.n_cb,
+                                fmt.tbs_bits // 8 - cfg.bsr_bytes, None, False, False, True))
         # Unused occasions still occupy their PRBs (used ones are counted with the PUSCH).
         self.counters.ul_prb_used += (len(occasions) - len(grants)) * cfg.cg_prb
         return grants
@@ -176,66 +176,93 @@ class Uplink:
         if self.configured_grant:
             grants = self._configured_grants(s) + (grants or [])
         if grants:
-            self._transmit(s, grants)
+            csi = self.csi
+            for g in grants:
+                tb = self.open_grant(s, g)
+                if tb is not None:
+                    self.decode(s, tb, csi.eesm(g.ue, g.prb_start, g.n_prb, tb.mcs, True))
 
-    def _transmit(self, s: int, grants: list[_Grant]) -> None:
+    def take_pusch(self, s: int) -> list[tuple[Grant, TransportBlock]]:
+        """The PUSCH transmissions of slot index ``s``, each grant with the TB its UE sends on
+        it, before any is decoded: a cell among several needs them all for the interference.
+        Grants that send nothing (missed DCI, nothing to send) are settled here."""
+        grants = self.pipeline.pop(s, None)
+        if self.configured_grant:
+            grants = self._configured_grants(s) + (grants or [])
+        out: list[tuple[Grant, TransportBlock]] = []
+        if grants:
+            for g in grants:
+                tb = self.open_grant(s, g)
+                if tb is not None:
+                    out.append((g, tb))
+        return out
+
+    def open_grant(self, s: int, g: Grant) -> TransportBlock | None:
+        """The UE's side of grant ``g`` in slot index ``s``: the TB it sends (a new one filled
+        from its buffer with its BSR, or the one to retransmit), or None when it sends nothing
+        (it missed the DCI, or has nothing but padding)."""
         harq = self.harq
         counters = self.counters
-        outcomes = self.outcomes
-        for g in grants:
-            u = g.ue
-            counters.ul_prb_used += g.n_prb
-            tb = g.tb
-            if tb is None:
-                if not g.configured:
-                    self.ue_grants[u] -= 1
-                    self.ue_grant_bytes[u] -= g.payload_bytes
-                if g.missed:
-                    # DTX seen by the gNB: it knows nothing came and restores its view.
-                    counters.pdcch_missed += 1
-                    self._restore_request(u, g)
-                    continue
-                buf = self.buf[u]
-                if g.configured and not (buf.bytes and harq.has_free_process(u)):
-                    continue  # unused configured-grant occasion
-                queued = buf.bytes
-                segments = buf.fill(g.payload_bytes) if queued else []
-                # The BSR rides with the PUSCH: the gNB now knows the rest of the buffer.
-                self.sr_candidates.discard(u)
-                known = buf.report_bytes() - self.ue_grant_bytes[u]
-                self.gnb_bytes[u] = known if known > 0 else 0
-                self.prio[u] = buf.best_priority()
-                if known > 0:
-                    self.known.add(u)
-                elif not self.gnb_sr[u]:
-                    self.known.discard(u)
-                if not segments:
-                    if not g.configured:
-                        harq.release(u)  # padding only: no HARQ process needed
-                    continue
-                if g.configured:
-                    harq.occupy(u)
-                # fill takes exactly the bytes it puts in segments out of the buffer.
-                tb = TransportBlock(u, segments, g.tbs_bits, g.mcs, g.n_prb, g.cbs_bits, g.n_cb,
-                                    queued - buf.bytes)
-            elif g.missed:
+        u = g.ue
+        counters.ul_prb_used += g.n_prb
+        tb = g.tb
+        if tb is None:
+            if not g.configured:
+                self.ue_grants[u] -= 1
+                self.ue_grant_bytes[u] -= g.payload_bytes
+            if g.missed:
+                # DTX seen by the gNB: it knows nothing came and restores its view.
                 counters.pdcch_missed += 1
-                harq.missed(tb)
-                counters.retx["ul"] += 1
-                outcomes.after_failure(tb, s + 1, harq, True)
-                continue
-            sinr = self.csi.eesm(u, g.prb_start, g.n_prb, tb.mcs, True)
-            eff = harq.combine(tb, sinr)
-            ok = self.rand() >= self.phy.bler.tb_bler(
-                tb.mcs, tb.cbs_bits, tb.n_cb, 10.0 * math.log10(eff))
-            counters.account("ul", u, tb, ok, self.la, ok)
-            if ok:
-                outcomes.deliver(tb, True)
-                harq.release(u)
-            else:
-                outcomes.after_failure(tb, s + 1, harq, True)
+                self._restore_request(u, g)
+                return None
+            buf = self.buf[u]
+            if g.configured and not (buf.bytes and harq.has_free_process(u)):
+                return None  # unused configured-grant occasion
+            queued = buf.bytes
+            segments = buf.fill(g.payload_bytes) if queued else []
+            # The BSR rides with the PUSCH: the gNB now knows the rest of the buffer.
+            self.sr_candidates.discard(u)
+            known = buf.report_bytes() - self.ue_grant_bytes[u]
+            self.gnb_bytes[u] = known if known > 0 else 0
+            self.prio[u] = buf.best_priority()
+            if known > 0:
+                self.known.add(u)
+            elif not self.gnb_sr[u]:
+                self.known.discard(u)
+            if not segments:
+                if not g.configured:
+                    harq.release(u)  # padding only: no HARQ process needed
+                return None
+            if g.configured:
+                harq.occupy(u)
+            # fill takes exactly the bytes it puts in segments out of the buffer.
+            return TransportBlock(u, segments, g.tbs_bits, g.mcs, g.n_prb, g.cbs_bits, g.n_cb,
+                                  queued - buf.bytes)
+        if g.missed:
+            counters.pdcch_missed += 1
+            harq.missed(tb)
+            counters.retx["ul"] += 1
+            self.outcomes.after_failure(tb, s + 1, harq, True)
+            return None
+        return tb
 
-    def _restore_request(self, u: int, g: _Grant) -> None:
+    def decode(self, s: int, tb: TransportBlock, sinr: float) -> bool:
+        """The gNB decodes ``tb``, received in slot index ``s`` at effective SINR ``sinr``
+        (linear); whether it succeeded (a failure queues a retransmission or loses the TB)."""
+        harq = self.harq
+        u = tb.ue
+        eff = harq.combine(tb, sinr)
+        ok = self.rand() >= self.phy.bler.tb_bler(
+            tb.mcs, tb.cbs_bits, tb.n_cb, 10.0 * math.log10(eff))
+        self.counters.account("ul", u, tb, ok, self.la, ok)
+        if ok:
+            self.outcomes.deliver(tb, True)
+            harq.release(u)
+        else:
+            self.outcomes.after_failure(tb, s + 1, harq, True)
+        return ok
+
+    def _restore_request(self, u: int, g: Grant) -> None:
         """A grant that carried nothing: free its HARQ process and give the gNB back what it
         knew of the UE's request (a pending SR, or the bytes the grant was sized for)."""
         self.harq.release(u)

@@ -96,7 +96,8 @@ def test_old_field_names_load_once_with_a_warning_naming_the_new_ones(tmp_path: 
 
 
 def test_hall_has_no_inf_layout_unless_asked_and_takes_one_by_subset_or_positions() -> None:
-    assert all(load_scenario(p).hall.inf_layout is None for p in SCENARIOS)
+    assert all((load_scenario(p).hall.inf_layout is None) == (p.stem != "factory_small")
+               for p in SCENARIOS)
     sc = parse_scenario({}, ["hall.inf_layout.gnb_count=6", "hall.inf_layout.reuse=3"])
     layout = sc.hall.inf_layout
     assert layout is not None
@@ -126,6 +127,53 @@ def test_bad_inf_layout_is_refused_naming_the_field(inf_layout: dict, hall: dict
                                                     message: str) -> None:
     with pytest.raises(ScenarioError) as err:
         parse_scenario({"hall": {**hall, "inf_layout": inf_layout}})
+    (where, said), = err.value.errors
+    assert where == field
+    assert re.search(message, said), said
+
+
+def test_no_agvs_unless_asked_and_handover_defaults() -> None:
+    assert all(load_scenario(p).agvs.count == 0 for p in SCENARIOS)
+    sc = parse_scenario({})
+    assert (sc.agvs.count, sc.agvs.speed_m_s, sc.agvs.waypoints_m) == (0, 1.0, None)
+    ho = sc.netsim.handover
+    assert (ho.filter_k, ho.a3_offset_db, ho.hysteresis_db, ho.time_to_trigger_ms,
+            ho.interruption_ms, ho.forward, ho.measurement_period_ms) == (4, 0.0, 3.0, 256, 50.0,
+                                                                         True, 20)
+    given = parse_scenario({"hall": {"inf_layout": {"gnb_count": 4}}, "agvs": {
+        "count": 2, "speed_m_s": 2, "waypoints_m": [[0, 0], [120, 60]], "ul_rate_mbps": 4}},
+        ["netsim.handover.time_to_trigger_ms=640", "netsim.handover.hysteresis_db=1.5"])
+    assert given.agvs.waypoints_m == [(0.0, 0.0), (120.0, 60.0)]
+    assert (given.agvs.ul_rate_mbps, given.netsim.handover.time_to_trigger_ms) == (4.0, 640)
+
+
+@pytest.mark.parametrize(("data", "field", "message"), [
+    ({"agvs": {"count": 1}}, "(scenario)",
+     r"agvs\.count = 1 needs several gNBs to hand over between: set hall\.inf_layout"),
+    ({"hall": {"inf_layout": {}}, "agvs": {"count": 1, "waypoints_m": [[10, 10], [130, 10]]}},
+     "(scenario)", r"agvs\.waypoints_m\[1\] = \(130, 10\) m lies outside the hall floor "
+     r"\(0\.\.120 x 0\.\.60 m\)"),
+    ({"agvs": {"waypoints_m": [[10, -1], [20, 10]]}}, "(scenario)",
+     r"agvs\.waypoints_m\[0\] = \(10, -1\) m lies outside"),
+    ({"agvs": {"speed_m_s": 2.5}}, "agvs.speed_m_s",
+     r"speed_m_s = 2\.5 m/s is outside the AGV speeds: allowed 0\.5 to 2 m/s"),
+    ({"agvs": {"speed_m_s": 0.3}}, "agvs.speed_m_s", r"allowed 0\.5 to 2 m/s"),
+    ({"agvs": {"waypoints_m": [[5, 5], [5, 5]]}}, "agvs.waypoints_m", r"two different points"),
+    ({"netsim": {"handover": {"time_to_trigger_ms": 200}}}, "netsim.handover.time_to_trigger_ms",
+     r"time_to_trigger_ms = 200 is not a TS 38\.331 TimeToTrigger: allowed 0, 40, 64, 80, 100, "
+     r"128, 160, 256, 320, 480, 512, 640, 1024, 1280, 2560, 5120 ms"),
+    ({"netsim": {"handover": {"filter_k": 10}}}, "netsim.handover.filter_k",
+     r"filter_k = 10 is not a TS 38\.331 filterCoefficient: allowed 0, 1, 2, 3, 4, 5, 6, 7, 8, "
+     r"9, 11, 13, 15, 17, 19"),
+    ({"netsim": {"handover": {"hysteresis_db": 1.2}}}, "netsim.handover.hysteresis_db",
+     r"hysteresis_db = 1\.2 dB is not a multiple of 0\.5 dB"),
+    ({"netsim": {"handover": {"a3_offset_db": 20}}}, "netsim.handover.a3_offset_db",
+     r"less than or equal to 15"),
+])
+def test_bad_agvs_and_handover_are_refused_naming_the_field(data: dict, field: str,
+                                                            message: str) -> None:
+    with pytest.raises(ScenarioError) as err:
+        parse_scenario(data)
     (where, said), = err.value.errors
     assert where == field
     assert re.search(message, said), said

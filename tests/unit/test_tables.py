@@ -32,7 +32,7 @@ from scenario.schema import parse_scenario
 def packet(i: int, lost: bool = False) -> dict[str, Any]:
     return {"packet_id": i, "flow": "camera-0/video", "ue": "camera-0", "dir": "ul", "size_bytes": 1500,
             "enqueue_us": 1000 * i, "deliver_us": None if lost else 1000 * i + 3000,
-            "latency_us": None if lost else 3000, "lost_cause": "channel" if lost else None}
+            "latency_us": None if lost else 3000, "lost_cause": "channel" if lost else None, "gnb": None}
 
 
 def read_all(path: Path) -> tuple[list[dict[str, Any]], PartInfo]:
