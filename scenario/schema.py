@@ -537,6 +537,10 @@ class Scenario(Strict):
                 raise ValueError(
                     f"agvs.waypoints_m[{i}] = ({x:g}, {y:g}) m lies outside the hall floor "
                     f"(0..{hall.length_m:g} x 0..{hall.width_m:g} m): every waypoint must lie on it")
+        if agvs.count:
+            raise ValueError(
+                f"agvs.count = {agvs.count}: AGV routes and handover are modelled "
+                f"(netsim/nr/mobility.py, handover.py) but no run drives them yet: set agvs.count = 0")
         return self
 
     def _cells_in_hall(self) -> None:

@@ -141,7 +141,7 @@ def test_no_agvs_unless_asked_and_handover_defaults() -> None:
             ho.interruption_ms, ho.forward, ho.measurement_period_ms) == (4, 0.0, 3.0, 256, 50.0,
                                                                          True, 20)
     given = parse_scenario({"hall": {"inf_layout": {"gnb_count": 4}}, "agvs": {
-        "count": 2, "speed_m_s": 2, "waypoints_m": [[0, 0], [120, 60]], "ul_rate_mbps": 4}},
+        "speed_m_s": 2, "waypoints_m": [[0, 0], [120, 60]], "ul_rate_mbps": 4}},
         ["netsim.handover.time_to_trigger_ms=640", "netsim.handover.hysteresis_db=1.5"])
     assert given.agvs.waypoints_m == [(0.0, 0.0), (120.0, 60.0)]
     assert (given.agvs.ul_rate_mbps, given.netsim.handover.time_to_trigger_ms) == (4.0, 640)
@@ -153,6 +153,8 @@ def test_no_agvs_unless_asked_and_handover_defaults() -> None:
     ({"hall": {"inf_layout": {}}, "agvs": {"count": 1, "waypoints_m": [[10, 10], [130, 10]]}},
      "(scenario)", r"agvs\.waypoints_m\[1\] = \(130, 10\) m lies outside the hall floor "
      r"\(0\.\.120 x 0\.\.60 m\)"),
+    ({"hall": {"inf_layout": {}}, "agvs": {"count": 2}}, "(scenario)",
+     r"agvs\.count = 2: AGV routes and handover are modelled .* but no run drives them yet"),
     ({"agvs": {"waypoints_m": [[10, -1], [20, 10]]}}, "(scenario)",
      r"agvs\.waypoints_m\[0\] = \(10, -1\) m lies outside"),
     ({"agvs": {"speed_m_s": 2.5}}, "agvs.speed_m_s",

@@ -10,7 +10,7 @@ import pytest
 from netsim.nr.large_scale import InfLinks, InfMaps
 from netsim.nr.layout import InfLayout
 from netsim.nr.mobility import AgvRoute, Fleet, agv_ids, agv_routes, aisle_loops
-from scenario.schema import HallConfig, parse_scenario
+from scenario.schema import HallConfig, Scenario, parse_scenario
 
 SQUARE = [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]  # 40 m a lap
 S = 1_000_000  # us
@@ -102,9 +102,14 @@ def test_aisle_loops_are_clipped_to_the_floor() -> None:
     assert loop.tolist() == [[3, 0], [27, 0], [27, 10], [3, 10]]
 
 
+def with_agvs(sc: Scenario, count: int) -> Scenario:
+    """``sc`` with ``count`` AGVs, past the check that refuses them while no run drives them."""
+    return sc.model_copy(update={"agvs": sc.agvs.model_copy(update={"count": count})})
+
+
 def test_scenario_routes_share_the_aisle_loops_or_the_given_route() -> None:
     layout = {"inf_layout": {"gnb_count": 6}}
-    sc = parse_scenario({"loops": 16, "hall": layout, "agvs": {"count": 3, "speed_m_s": 1.5}})
+    sc = with_agvs(parse_scenario({"loops": 16, "hall": layout, "agvs": {"speed_m_s": 1.5}}), 3)
     routes = agv_routes(sc)
     assert len(routes) == 3 and agv_ids(3) == ["agv-0", "agv-1", "agv-2"]
     assert all(r.speed_m_s == 1.5 and r.height_m == sc.hall.ue_height_m for r in routes)
@@ -116,8 +121,8 @@ def test_scenario_routes_share_the_aisle_loops_or_the_given_route() -> None:
     assert (routes[0].start_offset_m, routes[1].start_offset_m) == (0.0, 0.0)
     assert routes[2].start_offset_m == pytest.approx(routes[0].length_m / 2)
 
-    given = parse_scenario({"hall": layout, "agvs": {
-        "count": 4, "waypoints_m": [[10, 10], [110, 10], [110, 50], [10, 50]]}})
+    given = with_agvs(parse_scenario({"hall": layout, "agvs": {
+        "waypoints_m": [[10, 10], [110, 10], [110, 50], [10, 50]]}}), 4)
     routes = agv_routes(given)
     assert [r.start_offset_m for r in routes] == [0.0, 70.0, 140.0, 210.0]
     assert all(r.waypoints_m.tolist() == [[10, 10], [110, 10], [110, 50], [10, 50]]
