@@ -527,14 +527,14 @@ class ComputeNode:
         dist = self._job_models.get(kind)
         if dist is None:
             dist = self.profile.model_us.get(kind)
-            fitted = fitted_job_models()
-            if dist is None and kind in fitted:
+            if dist is None:  # the fitted models are read only when the profile gives none
+                fitted = fitted_job_models()
+                if kind not in fitted:
+                    raise KeyError(
+                        f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
+                        f"(has: {sorted(self.profile.model_us)}; fitted kinds: {sorted(fitted)})"
+                    )
                 dist = fitted[kind].at(self.profile.cpus)
-            if dist is None:
-                raise KeyError(
-                    f"{self.node}: timing 'model' needs nodes.<node>.model_us.{kind} "
-                    f"(has: {sorted(self.profile.model_us)}; fitted kinds: {sorted(fitted)})"
-                )
             self._job_models[kind] = dist
         return dist
 
