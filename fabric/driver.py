@@ -24,7 +24,6 @@ from fabric.messages import Advance, Done, Message, MessageError, Ready, Stop, S
 
 if TYPE_CHECKING:
     from fabric.bus import Bus
-    from fabric.federate import Federate
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +51,13 @@ class WindowReport:
     horizon_us: int | None = None
 
 
+class Inbox(Protocol):
+    """A federate as the driver sees it: its name and the data planes it takes messages on."""
+
+    name: str
+    data_planes: tuple[str, ...]
+
+
 class Participant(Protocol):
     """What the driver serves: one federate (``fabric.federate``) or a group (``fabric.group``)."""
 
@@ -61,7 +67,7 @@ class Participant(Protocol):
     @property
     def run_id(self) -> str: ...
 
-    def hosted(self) -> Sequence[Federate]:
+    def hosted(self) -> Sequence[Inbox]:
         """The federates whose inboxes and liveliness tokens it holds."""
 
     def setup(self) -> None: ...
