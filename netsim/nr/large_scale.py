@@ -22,6 +22,25 @@ from netsim.nr.channel import (
 from netsim.nr.layout import InfLayout
 
 
+def link_geometry(layout: InfLayout, ue: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """2D and 3D distance (m) and LOS probability of every link between ``ue`` (n_ue, 3), metres,
+    and the gNBs of ``layout``, each (n_ue, n_gnb)."""
+    sub, gnb = layout.sub_scenario, layout.gnb_positions_m
+    delta = ue[:, None, :] - gnb[None, :, :]
+    d2d = np.hypot(delta[..., 0], delta[..., 1])
+    d3d = np.sqrt(d2d**2 + delta[..., 2] ** 2)
+    p_los = inf_los_probability(sub.name, d2d, sub.clutter_density, sub.clutter_size_m,
+                                sub.clutter_height_m, gnb[None, :, 2], ue[:, None, 2])
+    return d2d, d3d, p_los
+
+
+def grid_index(ue: np.ndarray, nx: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest point of the maps' 1 m grid (nx x ny) to each of ``ue`` (n_ue, 3), metres."""
+    ix = np.clip(np.rint(ue[:, 0] / FIELD_STEP_M).astype(int), 0, nx - 1)
+    iy = np.clip(np.rint(ue[:, 1] / FIELD_STEP_M).astype(int), 0, ny - 1)
+    return ix, iy
+
+
 class InfLinks:
     """Large scale of every link between ``ue_positions_m`` (n_ue, 3) and the gNBs of
     ``layout``; ``carrier_hz`` in Hz, antenna gains in dBi.
@@ -47,20 +66,12 @@ class InfLinks:
             raise ValueError(f"los_mode {los_mode!r} is not stochastic, los or nlos")
         sub = layout.sub_scenario
         ue = np.asarray(ue_positions_m, dtype=float).reshape(-1, 3)
-        gnb = layout.gnb_positions_m
         self.layout = layout
-        self.n_ue, self.n_gnb = len(ue), len(gnb)
-        delta = ue[:, None, :] - gnb[None, :, :]
-        self.d2d_m = np.hypot(delta[..., 0], delta[..., 1])
-        self.d3d_m = np.sqrt(self.d2d_m**2 + delta[..., 2] ** 2)
-        self.los_probability = inf_los_probability(
-            sub.name, self.d2d_m, sub.clutter_density, sub.clutter_size_m, sub.clutter_height_m,
-            gnb[None, :, 2], ue[:, None, 2])
-
+        self.n_ue, self.n_gnb = len(ue), len(layout.gnb_positions_m)
+        self.d2d_m, self.d3d_m, self.los_probability = link_geometry(layout, ue)
         nx = int(math.floor(layout.hall_length_m / FIELD_STEP_M)) + 1
         ny = int(math.floor(layout.hall_width_m / FIELD_STEP_M)) + 1
-        ix = np.clip(np.rint(ue[:, 0] / FIELD_STEP_M).astype(int), 0, nx - 1)
-        iy = np.clip(np.rint(ue[:, 1] / FIELD_STEP_M).astype(int), 0, ny - 1)
+        ix, iy = grid_index(ue, nx, ny)
 
         def field(gnb_id: str, name: str, decorrelation_m: float) -> np.ndarray:
             gen = named_rng(seed, f"{stream_prefix}/{gnb_id}/{name}")
@@ -148,17 +159,10 @@ class InfLinkState:
     def __init__(self, maps: InfMaps, ue: np.ndarray) -> None:
         layout = maps.layout
         sub = layout.sub_scenario
-        gnb = layout.gnb_positions_m
         self.layout = layout
-        self.n_ue, self.n_gnb = len(ue), len(gnb)
-        delta = ue[:, None, :] - gnb[None, :, :]
-        self.d2d_m = np.hypot(delta[..., 0], delta[..., 1])
-        self.d3d_m = np.sqrt(self.d2d_m**2 + delta[..., 2] ** 2)
-        self.los_probability = inf_los_probability(
-            sub.name, self.d2d_m, sub.clutter_density, sub.clutter_size_m, sub.clutter_height_m,
-            gnb[None, :, 2], ue[:, None, 2])
-        ix = np.clip(np.rint(ue[:, 0] / FIELD_STEP_M).astype(int), 0, maps.nx - 1)
-        iy = np.clip(np.rint(ue[:, 1] / FIELD_STEP_M).astype(int), 0, maps.ny - 1)
+        self.n_ue, self.n_gnb = len(ue), len(layout.gnb_positions_m)
+        self.d2d_m, self.d3d_m, self.los_probability = link_geometry(layout, ue)
+        ix, iy = grid_index(ue, maps.nx, maps.ny)
 
         def read(f: np.ndarray) -> np.ndarray:
             return f[:, ix, iy].T  # (n_ue, n_gnb)
