@@ -36,6 +36,20 @@ so BLER(T10) = 10 %. Anchors:
   (interpolated over table-1 64QAM entries) plus 0.5 dB for the denser constellation, and the
   64QAM short-block penalty at the same code rate.
 
+Uplink: the PUSCH uses the same curves, indexed like the downlink by its MCS table's (Qm, R)
+(TS 38.214 6.1.4.1: a CP-OFDM PUSCH, transform precoding disabled, uses Tables 5.1.3.1-1/-2/-3).
+They are checked against Sionna's PUSCH link-level tables (NVlabs/sionna,
+``src/sionna/sys/bler_tables/PUSCH_table1.json`` at commit
+20d2bcaec8d43ec38f8ab6da6c390b5f84c237b4, category 0, table index 1; ``PUSCH_REFERENCE_TABLE_1``
+below), whose MCS index follows TS 38.214 Table 6.1.4.1-1 (PUSCH with transform precoding):
+its MCS 17..27 carry the (Qm, R) of table-1 MCS 18..28 (MCS 28 is reserved), so read by MCS
+index it lies 0.3-1.6 dB above the curves here at MCS 17-27: one MCS step of these curves, not a
+difference between the links. Matched by (Qm, R), the PUSCH and PDSCH link-level curves (the
+latter ``PDSCH_table1.json`` beside it, category 1, at the same commit) agree within 0.2 dB wherever the reference grid resolves the 10 % point (86
+points over 5 block sizes, mean difference 0.003 dB); against the PUSCH entries, the 24-bit
+anchors above are within 0.25 dB and the 2000-bit ones inside the reference's bracket
+(``pusch_reference_deviations``).
+
 EESM beta: MCS table 1 uses the values of the reference (as in Sionna's eesm_beta_table.json).
 For other tables, an entry with a table-1 (Qm, R) twin reuses its beta; otherwise beta comes from
 a per-modulation log-linear fit of beta against R over table-1 entries (QPSK extrapolated to low
@@ -49,6 +63,7 @@ import argparse
 import json
 import math
 import sys
+from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal
 from pathlib import Path
 from typing import Any
@@ -107,6 +122,25 @@ T10_ANCHORS_TABLE_1 = {
     18: (9.7, 11.7), 19: (10.0, 12.7), 20: (11.6, 12.7), 21: (12.2, 14.0), 22: (13.4, 14.0),
     23: (14.3, 15.5), 24: (14.9, 15.7), 25: (16.5, 18.3), 26: (17.0, 18.3), 27: (18.3, 18.1),
     28: (19.0, 18.2),
+}
+# Sionna's PUSCH BLER tables (see the module docstring), AWGN, read per PUSCH MCS index i (TS 38.214
+# Table 6.1.4.1-1): i -> (Qm, R x 1024, SNR dB at 10 % BLER for 24-bit blocks, and the two SNR
+# grid points (dB) between which 2000-bit blocks cross 10 %). The reference grid steps by
+# 25/14 = 1.79 dB from -5 dB; the 24-bit point interpolates log(BLER) linearly between the grid
+# points around 10 %; long blocks fall from ~1 to ~0 within one step, hence a bracket.
+PUSCH_REFERENCE_TABLE_1: dict[int, tuple[int, int, float, float, float]] = {
+    3: (2, 251, -1.03, -3.21, -1.43), 4: (2, 308, 0.21, -3.21, -1.43),
+    5: (2, 379, 0.96, -1.43, 0.36), 6: (2, 449, 2.15, 0.36, 2.14), 7: (2, 526, 2.96, 0.36, 2.14),
+    8: (2, 602, 3.79, 2.14, 3.93), 9: (2, 679, 4.33, 2.14, 3.93), 10: (4, 340, 4.91, 2.14, 3.93),
+    11: (4, 378, 5.47, 3.93, 5.71), 12: (4, 434, 6.55, 3.93, 5.71),
+    13: (4, 490, 7.76, 5.71, 7.50), 14: (4, 553, 8.15, 5.71, 7.50),
+    15: (4, 616, 9.92, 7.50, 9.29), 16: (4, 658, 9.90, 7.50, 9.29),
+    17: (6, 466, 11.73, 9.29, 11.07), 18: (6, 517, 12.68, 9.29, 11.07),
+    19: (6, 567, 12.69, 11.07, 12.86), 20: (6, 616, 14.04, 11.07, 12.86),
+    21: (6, 666, 13.99, 12.86, 14.64), 22: (6, 719, 15.65, 12.86, 14.64),
+    23: (6, 772, 15.56, 14.64, 16.43), 24: (6, 822, 18.29, 16.43, 18.21),
+    25: (6, 873, 18.29, 16.43, 18.21), 26: (6, 910, 18.31, 18.21, 20.00),
+    27: (6, 948, 18.18, 18.21, 20.00),
 }
 MIN_STEP_DB = 0.1  # strict increase of thresholds with MCS
 MIN_SHORT_BLOCK_PENALTY_DB = 0.5
@@ -210,6 +244,32 @@ def anchors_for(table: str) -> tuple[list[float], list[float]]:
     t2000 = _make_increasing(t2000, MIN_STEP_DB)
     t24 = [max(b, a + MIN_SHORT_BLOCK_PENALTY_DB) for a, b in zip(t2000, t24, strict=True)]
     return t2000, _make_increasing(t24, MIN_STEP_DB)
+
+
+@dataclass(frozen=True)
+class PuschCheck:
+    """One entry of ``PUSCH_REFERENCE_TABLE_1`` against the table-1 curves of the same (Qm, R)."""
+
+    pusch_mcs: int  # index in the reference (TS 38.214 Table 6.1.4.1-1)
+    mcs: int  # table-1 MCS with the same (Qm, R)
+    anchor_24_minus_reference_db: float  # T10_ANCHORS_TABLE_1 at 24 bits minus the reference
+    model_24_minus_reference_db: float  # shipped curve (monotone, floored) minus the reference
+    model_2000_db: float  # shipped curve's T10 at 2000 bits
+    reference_2000_db: tuple[float, float]  # the reference's bracket at 2000 bits
+
+
+def pusch_reference_deviations() -> list[PuschCheck]:
+    """Each PUSCH reference entry against the table-1 MCS of the same (Qm, R), which is the curve
+    a PUSCH at that (Qm, R) decodes with (MCS 0..2 have no reference entry)."""
+    t2000, t24 = table1_anchors()
+    twin = {entry: i for i, entry in enumerate(MCS_TABLE_1)}
+    out = []
+    for i, (qm, r, ref24, lo, hi) in sorted(PUSCH_REFERENCE_TABLE_1.items()):
+        mcs = twin[(qm, r)]
+        raw24 = T10_ANCHORS_TABLE_1[mcs][1]
+        out.append(PuschCheck(i, mcs, round(raw24 - ref24, 3), round(t24[mcs] - ref24, 3),
+                              round(t2000[mcs], 3), (lo, hi)))
+    return out
 
 
 def slope_per_db(cbs_bits: float) -> float:
