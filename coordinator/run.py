@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.conductor import Conductor, Progress, RunFailed
+from coordinator.edges import provide_edge_plan
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from coordinator.provision import FrameModelError, provide_frame_model
 from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
@@ -156,6 +157,10 @@ def execute_run(
             provide_frame_model(scenario, scenario_path, run_dir)
         except (FrameModelError, OSError) as exc:
             raise RunFailed(f"abstract loops' frame model: {exc}", federate="loops") from None
+        try:  # each work cell's gNB, for the Edge sides (domain/edges.py)
+            provide_edge_plan(scenario, run_dir)
+        except (ValueError, OSError) as exc:
+            raise RunFailed(f"Edge plan: {exc}") from None
         liveness = LivenessWatch(router, run_id)
         specs = federate_specs(scenario)
         groups = {s.name: [name for name, _ in s.members] for s in specs if s.role == "group"}

@@ -14,15 +14,23 @@ LOOP_ALPHA = 0.1
 # second weighs.
 CELL_ALPHA = 0.3
 # A frame that started to arrive and is still incomplete this long after is counted lost (below
-# capacity a frame completes within tens of ms of its first packet).
+# capacity a frame completes within tens of ms of its first packet), and so is a frame the camera
+# sent that has not started to arrive this long after a later one did (its packets were
+# discarded whole at the UE, overflowed or failed HARQ; a frame overtaken by a later one in
+# HARQ arrives within tens of ms).
 LOST_AFTER_US = 250_000
-# The cap also takes the cell as past capacity when more than this share of the frames that
-# started to arrive never complete (lost to a full buffer, a late discard or a failed HARQ
-# process): deep in overload few frames complete, and their delays alone say little.
-LOSS_TARGET = 0.2
+# The cap also takes the cell as past capacity when more than this share of the frames the
+# cameras sent never complete (discarded late, overflowed or failed HARQ, whole or in part): deep
+# in overload few frames complete, and their delays alone say little. The share counts every
+# sent frame, so it bounds what the cameras inject at 1 / (1 - LOSS_TARGET) of what the cell
+# delivers: 1.11x.
+LOSS_TARGET = 0.1
 # Both levels fall by CUT when their delay target is exceeded, at most once per HOLD_US (the
-# delay answers a cut only after the queued frames have drained), and climb back by STEP a
-# policy period while the delay is under it: additive increase, multiplicative decrease.
+# delay answers a cut only after the queued frames have drained), and climb back a policy period
+# while the delay is under it: the fill by STEP (additive increase, multiplicative decrease), the
+# cap by STEP of its value. Past capacity the cap sits where the cell's delivery matches it,
+# 0.15 at 128 loops; rising by a fixed STEP there would add half again in the ~300 ms a loss
+# takes to show (LOST_AFTER_US), rising in proportion adds 6 % as near 1.
 CUT = 0.85
 HOLD_US = 300_000
 STEP = 0.01
@@ -52,7 +60,14 @@ class UplinkMonitor:
     congestion control (LEDBAT, RFC 6817) measures it. ``frame`` and ``lost`` are called as
     frames complete or are given up; ``period`` once per policy period folds that period's
     frames into the cell-wide figures (a period with no frame keeps them). A frame that
-    ``started`` to arrive and has not completed LOST_AFTER_US later is counted ``lost``."""
+    ``started`` to arrive and has not completed LOST_AFTER_US later is counted ``lost``.
+
+    Frames are known by their loop's sent-frame sequence number (``seq``: 0, 1, 2, ... over the
+    frames its camera sent; a frame the camera dropped on purpose, PDP, takes none). A frame
+    that arrives past a gap in the sequence shows that the camera sent the missing ones: each is
+    expected from then on, and counted lost unless it started to arrive within LOST_AFTER_US, so
+    that frames discarded whole before reaching the Edge (past capacity, most of them) count as
+    lost too. A frame seen before (a duplicate, or one already counted lost) starts nothing."""
 
     def __init__(self) -> None:
         self.delay_s: dict[int, float] = {}
@@ -63,17 +78,35 @@ class UplinkMonitor:
         self._sum_s = 0.0
         self._n = 0
         self._lost = 0
+        # (loop, seq) of each frame expected and not complete -> since when (us): its first
+        # packet's arrival, or when a later frame showed it was sent.
         self._partial: dict[tuple[int, int], int] = {}
+        self._next: dict[int, int] = {}  # per loop: the sequence number after the highest seen
 
-    def started(self, loop: int, frame_id: int, now_us: int) -> None:
-        """The first packet of frame ``frame_id`` of ``loop`` arrived at ``now_us`` (us)."""
-        self._partial.setdefault((loop, frame_id), now_us)
+    def _seen(self, loop: int, seq: int, now_us: int) -> bool:
+        """Frame ``seq`` of ``loop`` seen at ``now_us`` (us): the frames sent before it and not
+        seen yet are expected from now. False when it was seen before and is no longer
+        expected (complete, or counted lost)."""
+        nxt = self._next.get(loop, 0)
+        if seq < nxt:
+            return (loop, seq) in self._partial
+        for missing in range(nxt, seq):
+            self._partial[(loop, missing)] = now_us
+        self._next[loop] = seq + 1
+        return True
 
-    def frame(self, loop: int, capture_us: int, arrival_us: int, frame_id: int | None = None) -> None:
-        """Frame ``frame_id`` of ``loop`` captured at ``capture_us`` (us) complete at the Edge at
-        ``arrival_us`` (us) (a frame already counted lost counts as arrived too: it was late)."""
-        if frame_id is not None:
-            self._partial.pop((loop, frame_id), None)
+    def started(self, loop: int, seq: int, now_us: int) -> None:
+        """The first packet of sent frame ``seq`` of ``loop`` arrived at ``now_us`` (us)."""
+        if self._seen(loop, seq, now_us):
+            self._partial.setdefault((loop, seq), now_us)
+
+    def frame(self, loop: int, capture_us: int, arrival_us: int, seq: int | None = None) -> None:
+        """Sent frame ``seq`` of ``loop`` (None: not numbered, no gap is looked for) captured at
+        ``capture_us`` (us) complete at the Edge at ``arrival_us`` (us) (a frame already
+        counted lost counts as arrived too: it was late)."""
+        if seq is not None:
+            self._seen(loop, seq, arrival_us)
+            self._partial.pop((loop, seq), None)
         d = max(0, arrival_us - capture_us) / 1e6
         last = self.delay_s.get(loop, d)
         self.delay_s[loop] = last + LOOP_ALPHA * (d - last)
@@ -84,14 +117,14 @@ class UplinkMonitor:
         self._n += 1
 
     def lost(self, loop: int) -> None:
-        """A frame of ``loop`` that started to arrive and never completed."""
+        """A frame of ``loop`` sent and never (completely) received."""
         self.loss[loop] = self.loss.get(loop, 0.0) + LOOP_ALPHA * (1.0 - self.loss.get(loop, 0.0))
         self._lost += 1
 
     def period(self, now_us: int) -> tuple[float, float]:
         """Fold the frames since the last call into the cell's queueing delay (s) and loss (share
-        of frames), which it returns; at ``now_us`` (us), a frame started LOST_AFTER_US ago and
-        still incomplete counts as lost."""
+        of frames), which it returns; at ``now_us`` (us), a frame expected LOST_AFTER_US ago
+        (started, or shown sent by a later one) and still incomplete counts as lost."""
         for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
             del self._partial[key]
             self.lost(key[0])
@@ -111,12 +144,14 @@ class UplinkMonitor:
 class Level:
     """A PDP level in [``low``, 1] steered by a delay target: cut by CUT when the cell's queueing
     delay exceeds ``target_s`` (s) (or its loss exceeds ``loss_target``, a share of frames), at
-    most once per HOLD_US; raised by STEP a period otherwise."""
+    most once per HOLD_US; raised by STEP a period otherwise (``proportional``: by STEP of its
+    value)."""
 
-    def __init__(self, target_s: float, low: float, loss_target: float = 1.0) -> None:
+    def __init__(self, target_s: float, low: float, loss_target: float = 1.0, proportional: bool = False) -> None:
         self.target_s = target_s
         self.low = low
         self.loss_target = loss_target
+        self.proportional = proportional
         self.value = 1.0
         self._last_cut_us: int | None = None
 
@@ -128,7 +163,7 @@ class Level:
                 self.value = max(self.low, self.value * CUT)
                 self._last_cut_us = now_us
         else:
-            self.value = min(1.0, self.value + STEP)
+            self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
 
 
 class LoadControl:
@@ -146,7 +181,7 @@ class LoadControl:
 
     def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
-        self._cap = Level(cap_s, min_cap, LOSS_TARGET) if cap_s is not None else None
+        self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
 
     @property
     def fill(self) -> float:

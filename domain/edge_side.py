@@ -6,11 +6,15 @@ signalling to the gNB too) and the downlink packet that carries a pose or a QoS 
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any
+
 import numpy as np
 
 from domain import work_cell as g
 from domain.codec import slot_after
 from domain.congestion import LoadControl, UplinkMonitor
+from domain.edges import EdgePlan, edge_name
 from domain.frame_model import load_frame_model
 from domain.loop_state import LoopState
 from domain.policy import LearnedPolicy, Qos, check_family, make_policy, step_up
@@ -67,6 +71,11 @@ class CoDesign:
         self.limits = (limits or default_limits(cfg)) if codesign and cfg.floor else None
         self.load = load_control(cfg) if codesign else None
         self._period_us: int | None = None
+        # What the run's summary reports of this Edge: per loop the sum and count of the PDPs
+        # decided, and the sums of its levels over the policy periods.
+        self._pdp: dict[int, list[float]] = {}
+        self._periods = 0
+        self._levels = [0.0, 0.0, 0.0]  # fill, cap, queueing delay (s)
 
     @classmethod
     def for_scenario(cls, sc: Scenario) -> CoDesign:
@@ -99,6 +108,9 @@ class CoDesign:
         state = self.state(loop, now_us, tracker, last_frame_us)
         qos = self.apply(state, self.policy.decide(state))
         metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
+        acc = self._pdp.setdefault(loop, [0.0, 0])
+        acc[0] += qos.pdp
+        acc[1] += 1
         return qos
 
     def period(self, now_us: int) -> None:
@@ -110,6 +122,33 @@ class CoDesign:
             metrics.PDP_FILL.set(self.load.fill)
             metrics.PDP_CAP.set(self.load.cap)
         metrics.QUEUEING_DELAY.set(queueing_s)
+        self._periods += 1
+        for i, level in enumerate(self.levels()[:3]):
+            self._levels[i] += level
+
+    def levels(self) -> tuple[float, float, float, float]:
+        """The load control's fill and cap (PDP; 1 and 1 without load control), and the cell's
+        smoothed queueing delay (s) and frame loss (share) as this Edge sees them now."""
+        fill, cap = (self.load.fill, self.load.cap) if self.load is not None else (1.0, 1.0)
+        return fill, cap, self.monitor.cell_queueing_s, self.monitor.cell_loss
+
+    def mean_pdp(self, loops: Iterable[int] | None = None) -> float | None:
+        """The mean of the PDPs decided for ``loops`` (None: every loop) so far; None: none."""
+        chosen = [self._pdp[i] for i in (self._pdp if loops is None else loops) if i in self._pdp]
+        n = sum(int(a[1]) for a in chosen)
+        return sum(a[0] for a in chosen) / n if n else None
+
+    def summary(self) -> dict[str, Any]:
+        """What this Edge saw and decided over the run: the mean PDP of its loops, the means of
+        its levels over the policy periods (fill, cap, queueing delay in s) and their last
+        values."""
+        fill, cap, queueing_s, loss = self.levels()
+        n = self._periods
+        return {"loops": self.loops, "mean_pdp": self.mean_pdp(),
+                "mean_fill": self._levels[0] / n if n else None,
+                "mean_cap": self._levels[1] / n if n else None,
+                "mean_queueing_delay_s": self._levels[2] / n if n else None,
+                "fill": fill, "cap": cap, "queueing_delay_s": queueing_s, "frame_loss": loss}
 
     def apply(self, state: LoopState, qos: Qos) -> Qos:
         """``qos``, the policy's decision for the loop in ``state``, bounded by the safety floor
@@ -129,6 +168,48 @@ class CoDesign:
             return None
         self.sent[loop] = (qos, now_us)
         return QosSignal(loop=loop, pdp=qos.pdp, pdb_us=qos.pdb_us)
+
+
+class Edges:
+    """The Edge sides of a federate's ``loops`` under ``plan`` (scenario ``sc``): a ``CoDesign``
+    per Edge, each with its own uplink monitor, load control and policy state, over the loops it
+    serves (at a per-gNB Edge the loops whose camera its gNB serves, at the central Edge all);
+    its loop count is that Edge's over the whole scenario. ``plan.backhaul_us`` is the delay its
+    federate adds to every uplink frame and downlink packet (0 at a per-gNB Edge)."""
+
+    def __init__(self, sc: Scenario, plan: EdgePlan, loops: Iterable[int]) -> None:
+        self.plan = plan
+        self.backhaul_us = plan.backhaul_us
+        every = plan.groups()
+        limits = default_limits(sc.policy, sc)
+        self.by_edge: dict[str, CoDesign] = {}
+        self._of_loop: dict[int, CoDesign] = {}
+        for name, members in plan.groups(loops).items():
+            codesign = CoDesign(sc.policy, sc.work_cell, len(every[name]), sc.camera.fps, limits)
+            self.by_edge[name] = codesign
+            self._of_loop.update(dict.fromkeys(members, codesign))
+
+    def __getitem__(self, loop: int) -> CoDesign:
+        """The co-design of the Edge serving ``loop``."""
+        return self._of_loop[loop]
+
+    def summary(self) -> dict[str, Any]:
+        """Per Edge what it saw and decided (``CoDesign.summary``, with its loops and gNBs), and
+        per gNB the mean PDP decided for the loops whose camera it serves."""
+        gnb_of = self.plan.gnb_of_loop
+        edges = {}
+        for name, codesign in self.by_edge.items():
+            mine = sorted(i for i, c in self._of_loop.items() if c is codesign)
+            edges[name] = {**codesign.summary(), "loops_here": mine,
+                           "gnbs": sorted({gnb_of[i] for i in mine})}
+        gnbs: dict[str, dict[str, Any]] = {}
+        for gnb in sorted({gnb_of[i] for i in self._of_loop}):
+            mine = [i for i in sorted(self._of_loop) if gnb_of[i] == gnb]
+            known = [p for i in mine if (p := self._of_loop[i].mean_pdp([i])) is not None]
+            gnbs[edge_name(gnb)] = {"loops": mine,
+                                    "mean_pdp": sum(known) / len(known) if known else None}
+        return {"placement": self.plan.placement, "backhaul_ms": self.backhaul_us / 1000,
+                "edges": edges, "gnbs": gnbs}
 
 
 def bounded_pdp(state: LoopState, pdp: float, limits: FloorLimits | None, load: LoadControl | None) -> float:

@@ -307,6 +307,17 @@ class EdgeConfig(Strict):
     policy_period_ms: int = Field(default=50, ge=1, description="co-design policy period, ms")
     pose_packet_bytes: int = Field(default=120, ge=40, description="IP size of a pose packet")
     qos_packet_bytes: int = Field(default=60, ge=40, description="IP size of a QoS packet")
+    placement: Literal["per_gnb", "central"] = Field(
+        default="per_gnb", description="where the Edges stand with several gNBs "
+        "(`hall.inf_layout`): `per_gnb`, an Edge at each gNB for the loops whose camera it serves, "
+        "each with its own load control and policy state; `central`, one Edge for every loop, "
+        "reached over a backhaul of `backhaul_ms` (docs/architecture.md sec. 7). With one gNB "
+        "both give one Edge, `central` behind the backhaul")
+    backhaul_ms: float = Field(
+        default=1.0, ge=0, le=1000, description="`central`: one-way latency of the backhaul "
+        "between a gNB and the Edge, ms: every uplink frame reaches the Edge this long after its "
+        "gNB delivered it, every downlink packet enters its gNB this long after the Edge sent it "
+        "(0 to 1000); ignored with `per_gnb`")
 
 
 class PolicyConfig(Strict):

@@ -133,7 +133,9 @@ class App(Body, tag_field="type"):
 
 
 class Frame(App, tag=FRAME):
-    """Packet ``idx`` of the ``n`` packets of a detailed loop's compressed frame (bytes: the blob)."""
+    """Packet ``idx`` of the ``n`` packets of a detailed loop's compressed frame (bytes: the blob);
+    ``frame_id`` numbers the camera's captures, ``seq`` the frames it sent (a frame dropped for
+    its PDP takes none), so that the Edge can count a frame sent and never received as lost."""
 
     KIND: ClassVar[str] = FRAME
     loop: int
@@ -141,12 +143,14 @@ class Frame(App, tag=FRAME):
     capture_us: int
     idx: int
     n: int
+    seq: int
     packet_id: int | None = None
 
 
 class Aframe(App, tag=AFRAME):
     """An abstract loop's frame of ``n`` packets; delivered: the indices and ids of the packets
-    that arrived together."""
+    that arrived together. ``frame_id`` numbers the frames the camera sent (a frame dropped for
+    its PDP takes none): it is the sent-frame sequence a detailed ``Frame`` carries as ``seq``."""
 
     KIND: ClassVar[str] = AFRAME
     loop: int

@@ -32,7 +32,8 @@ class CameraFederate(Federate):
         self.keep_rng = self.rng("pdp")
         self.pdp = 1.0
         self.pdb_us: int | None = None
-        self.frame_id = 0
+        self.frame_id = 0  # captures
+        self.sent = 0  # frames sent: the sequence the Edge counts its lost frames by
         self.sensor = sensor_for(self.scenario.camera)
         self.sensor_rng = self.rng("sensor")
         cv2.setNumThreads(self.cpu.threads)  # OpenCV at the node's cores: one where cpus <= 1
@@ -68,9 +69,10 @@ class CameraFederate(Federate):
         self.frames.append(row)
         self.frames_kept += 1
         self.bytes_kept += len(data)
-        self.schedule(ready, self._transmit, fid, image.capture_us, data)
+        self.schedule(ready, self._transmit, fid, self.sent, image.capture_us, data)
+        self.sent += 1
 
-    def _transmit(self, fid: int, capture_us: int, data: bytes) -> None:
+    def _transmit(self, fid: int, seq: int, capture_us: int, data: bytes) -> None:
         sc = self.scenario
         sizes = split_packets(len(data), sc.camera.mtu_bytes)
         enter = slot_after(self.now, sc.netsim.slot_us)
@@ -81,7 +83,8 @@ class CameraFederate(Federate):
             self.send("netsim", enter, Packet(
                 ue=self.name, direction="ul", flow=f"{self.name}/video", size=size, dst="edge",
                 pdb_us=self.pdb_us,
-                app=Frame(loop=self.loop, frame_id=fid, capture_us=capture_us, idx=idx, n=len(sizes)),
+                app=Frame(loop=self.loop, frame_id=fid, capture_us=capture_us, idx=idx, n=len(sizes),
+                          seq=seq),
             ), chunk)
 
     def finish(self, reason: str) -> dict[str, Any]:

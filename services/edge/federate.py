@@ -10,7 +10,8 @@ from typing import Any
 import cv2
 
 from domain.codec import decode_frame, slot_after
-from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
+from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
+from domain.edges import load_plan
 from domain.estimator import Detection, make_estimator
 from domain.policy import Qos
 from domain.tracker import Tracker
@@ -36,7 +37,9 @@ class EdgeFederate(Federate):
         self.estimator, self.estimator_fallback = make_estimator(sc.edge.estimator, k, sc.work_cell.object_size_m)
         self.loops = list(range(sc.detailed_loops))
         self.trackers = {i: Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
-        self.codesign = CoDesign.for_scenario(sc)
+        # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py); one
+        # CPU serves them all.
+        self.edges = Edges(sc, load_plan(sc, self.results_dir), self.loops)
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
         self.frames = self.table("frames")
@@ -51,16 +54,23 @@ class EdgeFederate(Federate):
         return {Frame: self._on_frame}
 
     def _on_frame(self, frame: Frame, msg: Message) -> None:
+        if self.edges.backhaul_us:  # a central Edge: the packet crosses the backhaul from the gNB
+            self.schedule(self.now + self.edges.backhaul_us, self._frame_in, frame, msg.blob)
+        else:
+            self._frame_in(frame, msg.blob)
+
+    def _frame_in(self, frame: Frame, blob: bytes | None) -> None:
+        """A packet of ``frame`` (its bytes ``blob``) in at the Edge now."""
         key = (frame.loop, frame.frame_id)
         part = self.partial.get(key)
         if part is None:
             part = self.partial[key] = {"n": frame.n, "chunks": {}, "first_us": self.now,
-                                        "capture_us": frame.capture_us}
-            self.codesign.monitor.started(*key, self.now)
-        part["chunks"][frame.idx] = msg.blob or b""
+                                        "capture_us": frame.capture_us, "seq": frame.seq}
+            self.edges[frame.loop].monitor.started(frame.loop, frame.seq, self.now)
+        part["chunks"][frame.idx] = blob or b""
         if len(part["chunks"]) == part["n"]:
             del self.partial[key]
-            self.codesign.monitor.frame(key[0], part["capture_us"], self.now, key[1])
+            self.edges[key[0]].monitor.frame(key[0], part["capture_us"], self.now, part["seq"])
             data = b"".join(part["chunks"][i] for i in range(part["n"]))
             detections, ready = self.cpu.run("pose", self.now, self._estimate, data)
             self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],
@@ -94,9 +104,10 @@ class EdgeFederate(Federate):
     def _policy_tick(self) -> None:
         sc = self.scenario
         for loop in self.loops:
-            qos, ready = self.cpu.run("policy", self.now, self.codesign.decide, loop, self.now,
+            codesign = self.edges[loop]
+            qos, ready = self.cpu.run("policy", self.now, codesign.decide, loop, self.now,
                                       self.trackers[loop], self.last_frame_us[loop])
-            message = self.codesign.signal(loop, qos, self.now)
+            message = codesign.signal(loop, qos, self.now)
             if message is not None:
                 self.schedule(ready, self._downlink, f"camera-{loop}", "qos", sc.edge.qos_packet_bytes, message)
                 if sc.policy.signalling == "lower":
@@ -107,10 +118,13 @@ class EdgeFederate(Federate):
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
-        self.send("netsim", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
+        # A central Edge's control message crosses the backhaul to the gNB first.
+        self.send("netsim", *lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy,
+                                             sc.netsim.slot_us))
 
     def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
-        self.send("netsim", slot_after(self.now, self.scenario.netsim.slot_us),
+        # The Edge's packet enters its gNB after the backhaul (none at a per-gNB Edge).
+        self.send("netsim", slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, ue, app))
 
     def finish(self, reason: str) -> dict[str, Any]:
@@ -119,4 +133,5 @@ class EdgeFederate(Federate):
                 "compute_speed": self.cpu.speed_summary(self.now),
                 "estimator": self.estimator.name, "estimator_requested": self.scenario.edge.estimator,
                 "estimator_fallback_reason": self.estimator_fallback or "",
-                "mean_detections": self.detections / done if done else 0.0}
+                "mean_detections": self.detections / done if done else 0.0,
+                "edges": self.edges.summary()}

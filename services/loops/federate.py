@@ -14,7 +14,8 @@ import numpy as np
 
 from domain.codec import slot_after, split_packets
 from domain.controller import PickController
-from domain.edge_side import CoDesign, downlink_packet, lower_layer_qos, update_tracks
+from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
+from domain.edges import load_plan
 from domain.frame_model import RUN_FILE, camera_settings, model_for
 from domain.hall import SERVO_LAG_S
 from domain.kinematics import ArmKinematics
@@ -51,7 +52,7 @@ class AbstractLoop:
     robot_cpu: ComputeNode
     pdp: float = 1.0
     pdb_us: int | None = None
-    frame_id: int = 0
+    frame_id: int = 0  # frames sent (kept): the sequence the Edge side counts lost frames by
     truth: dict[int, tuple[int, list[Part]]] = field(default_factory=dict)  # frame -> (capture, objs)
     arrived: dict[int, int] = field(default_factory=dict)  # frame -> packets arrived
     last_frame_us: int | None = None
@@ -67,7 +68,8 @@ class LoopsFederate(Federate):
         sc = self.scenario
         # The model measured for this camera, put into the run directory by the coordinator.
         self.frame_model = model_for(camera_settings(sc.camera), self.results_dir / RUN_FILE)
-        self.codesign = CoDesign.for_scenario(sc)
+        # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py).
+        self.edges = Edges(sc, load_plan(sc, self.results_dir), range(sc.detailed_loops, sc.loops))
         nodes = sc.nodes
 
         def modelled(profile: Any) -> Any:
@@ -112,7 +114,12 @@ class LoopsFederate(Federate):
         self._camera_frame(self.loops[truth.loop], truth.capture_us, truth.objects)
 
     def _on_aframe(self, frame: Aframe, msg: Message) -> None:
-        self._frame_packets(self.loops[frame.loop], frame.frame_id, frame.n, len(frame.idx or ()))
+        lp, count = self.loops[frame.loop], len(frame.idx or ())
+        if self.edges.backhaul_us:  # a central Edge: the packets cross the backhaul from the gNB
+            self.schedule(self.now + self.edges.backhaul_us, self._frame_packets, lp, frame.frame_id,
+                          frame.n, count)
+        else:
+            self._frame_packets(lp, frame.frame_id, frame.n, count)
 
     def _on_pose(self, pose: Pose, msg: Message) -> None:
         self.loops[pose.loop].ctl.on_estimate(pose.tracks)
@@ -156,12 +163,12 @@ class LoopsFederate(Federate):
         got = lp.arrived.get(fid, 0) + count
         if got < n:
             if fid not in lp.arrived:
-                self.codesign.monitor.started(lp.index, fid, self.now)
+                self.edges[lp.index].monitor.started(lp.index, fid, self.now)
             lp.arrived[fid] = got
             return
         lp.arrived.pop(fid, None)
         capture_us, objects = lp.truth.pop(fid)
-        self.codesign.monitor.frame(lp.index, capture_us, self.now, fid)
+        self.edges[lp.index].monitor.frame(lp.index, capture_us, self.now, fid)
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
             lp.arrived.pop(old, None)
@@ -181,8 +188,9 @@ class LoopsFederate(Federate):
     def _policy_tick(self) -> None:
         sc = self.scenario
         for lp in self.loops.values():
-            qos = self.codesign.decide(lp.index, self.now, lp.tracker, lp.last_frame_us)
-            message = self.codesign.signal(lp.index, qos, self.now)
+            codesign = self.edges[lp.index]
+            qos = codesign.decide(lp.index, self.now, lp.tracker, lp.last_frame_us)
+            message = codesign.signal(lp.index, qos, self.now)
             if message is not None:
                 # Modelled timing: the policy job's duration is drawn only when its QoS is sent.
                 _, ready = lp.edge_cpu.run("policy", self.now, int, 0)
@@ -196,10 +204,13 @@ class LoopsFederate(Federate):
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
-        self.send("netsim", *lower_layer_qos(loop, qos, self.now, sc.policy, sc.netsim.slot_us))
+        # A central Edge's control message crosses the backhaul to the gNB first.
+        self.send("netsim", *lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy,
+                                             sc.netsim.slot_us))
 
     def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
-        self.send("netsim", slot_after(self.now, self.scenario.netsim.slot_us),
+        # The Edge's packet enters its gNB after the backhaul (none at a per-gNB Edge).
+        self.send("netsim", slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, self.name, app))
 
     # ---- robot side -----------------------------------------------------------------------------
@@ -240,4 +251,5 @@ class LoopsFederate(Federate):
 
     def finish(self, reason: str) -> dict[str, Any]:
         rows = self._write_loop_counters()
-        return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows)}
+        return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows),
+                "edges": self.edges.summary()}

@@ -135,7 +135,7 @@ def edge_inputs(sc: Scenario) -> list[Input]:
             # Packets of a frame arrive over a few slots, the last ones first.
             out.append(Input(t + 1000 * (len(sizes) - idx), "netsim", "net", "frame",
                              {"type": "frame", "loop": 0, "frame_id": k, "capture_us": t - 6000,
-                              "idx": idx, "n": len(sizes), "packet_id": 100 * k + idx}, chunk))
+                              "idx": idx, "n": len(sizes), "seq": k, "packet_id": 100 * k + idx}, chunk))
     return out
 
 
@@ -163,7 +163,7 @@ def netsim_inputs(sc: Scenario) -> list[Input]:
                 "ue": "camera-0", "dir": "ul", "flow": "camera-0/video", "size": 1500, "dst": "edge",
                 "pdb_us": None if k < 3 else 60_000,
                 "app": {"type": "frame", "loop": 0, "frame_id": k, "capture_us": t - 3000, "idx": idx,
-                        "n": 12}}, bytes([idx]) * 64))
+                        "n": 12, "seq": k}}, bytes([idx]) * 64))
         out.append(Input(enter + 2000, "loops", "net", "packets", {
             "ue": "camera-1", "dir": "ul", "flow": "camera-1/video", "sizes": [120, 80], "dst": "loops",
             "pdb_us": None, "app": {"type": "aframe", "loop": 1, "frame_id": k, "n": 2}}))

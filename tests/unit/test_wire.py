@@ -39,7 +39,7 @@ def test_a_body_encodes_as_the_map_of_its_fields_in_order() -> None:
     assert msgspec.msgpack.decode(msgspec.msgpack.encode(qos)) == {"type": "qos", "loop": 0, "pdp": 0.5,
                                                                   "pdb_us": None}
     packet = Packet(ue="camera-0", direction="ul", flow="camera-0/video", size=1500, dst="edge", pdb_us=None,
-                    app=Frame(loop=0, frame_id=1, capture_us=0, idx=0, n=3))
+                    app=Frame(loop=0, frame_id=1, capture_us=0, idx=0, n=3, seq=1))
     assert list(msgspec.msgpack.decode(msgspec.msgpack.encode(packet))) == [
         "ue", "dir", "flow", "size", "dst", "pdb_us", "app"]
 

@@ -1,0 +1,51 @@
+"""Each work cell's gNB, resolved once before a run starts, with netsim's own numbers: the large
+scale of every (UE, gNB) link drawn from the netsim federate's streams (``InfLinks``) and the
+strongest RSRP (``serving_gnb``), as ``MultiCell`` associates the UEs. Written into the run
+directory (``domain.edges.EDGE_FILE``), where the Edge sides read it: no federate imports
+another.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from domain.edges import EdgePlan, make_plan, single_gnb_plan, write_plan
+from netsim.nr.interference import serving_gnb
+from netsim.nr.large_scale import InfLinks
+from netsim.nr.layout import layout_from_hall
+from scenario.schema import Scenario
+from services.roles import ROLES
+
+
+def serving_gnbs(sc: Scenario) -> dict[str, int]:
+    """UE id (``camera-i``, ``robot-i``) -> the layout index of the gNB serving it in a run of
+    ``sc`` with ``hall.inf_layout``, as the netsim federate's ``MultiCell`` chooses it: the same
+    UE positions, seed and streams (``<netsim federate>/nr/inf/...``)."""
+    layout = layout_from_hall(sc.hall)
+    if layout is None:
+        raise ValueError("hall.inf_layout is not set: the one gNB serves every UE")
+    cfg = sc.netsim.nr
+    netsim = ROLES["netsim"].names(sc)[0]
+    positions = sc.ue_positions_m()
+    links = InfLinks(layout, np.array(list(positions.values()), dtype=float), cfg.carrier_frequency_hz,
+                     sc.seed, f"{netsim}/nr/inf", cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi,
+                     cfg.los_mode, cfg.shadowing_enabled)
+    serving = serving_gnb(links.coupling_loss_db)
+    return {ue: int(g) for ue, g in zip(positions, serving.tolist(), strict=True)}
+
+
+def resolve_plan(sc: Scenario) -> EdgePlan:
+    """The Edge plan of ``sc``: each loop on the gNB serving its camera."""
+    if sc.hall.inf_layout is None:
+        return single_gnb_plan(sc)
+    serving = serving_gnbs(sc)
+    return make_plan(sc, [serving[f"camera-{i}"] for i in range(sc.loops)])
+
+
+def provide_edge_plan(sc: Scenario, run_dir: Path) -> EdgePlan:
+    """Resolve ``sc``'s Edge plan and write it into ``run_dir`` for the federates."""
+    plan = resolve_plan(sc)
+    write_plan(plan, run_dir)
+    return plan

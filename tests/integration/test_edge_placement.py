@@ -1,0 +1,46 @@
+"""Edges in a hall of several gNBs, end to end: factory_small with an Edge per gNB and with one
+central Edge behind a backhaul, in the process runtime with model timing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from support import MODEL_TIMING_SETS
+
+from coordinator.run import execute_run
+from domain.edges import EDGE_FILE
+from scenario.schema import load_scenario
+
+pytestmark = pytest.mark.integration
+FACTORY_SMALL = Path(__file__).parents[2] / "configs" / "scenarios" / "factory_small.yaml"
+
+
+def run_factory(tmp_path: Path, placement: str) -> tuple[dict, dict]:
+    sc = load_scenario(FACTORY_SMALL, ["duration_s=2", f"edge.placement={placement}",
+                                       *MODEL_TIMING_SETS])
+    result = execute_run(sc, tmp_path / placement)
+    assert result.status == "completed", result.reason
+    plan = json.loads((result.run_dir / EDGE_FILE).read_text())
+    return result.kpis["federates"]["loops"]["edges"], plan
+
+
+def test_factory_small_runs_with_an_edge_per_gnb_and_with_a_central_edge(tmp_path: Path) -> None:
+    per, plan = run_factory(tmp_path, "per_gnb")
+    # One Edge per gNB serving cameras, each with the loops whose camera it serves and levels
+    # of its own: the gNBs carry different loads, so their Edges see different queueing delays.
+    assert per["placement"] == "per_gnb" and per["backhaul_ms"] == 0
+    assert set(per["edges"]) == set(plan["edges"]) and len(per["edges"]) == 4
+    for name, edge in per["edges"].items():
+        assert edge["loops_here"] == plan["edges"][name] and edge["loops"] == len(plan["edges"][name])
+        assert edge["gnbs"] == [int(name.removeprefix("gnb"))]
+        assert edge["mean_pdp"] is not None
+    assert len({e["mean_queueing_delay_s"] for e in per["edges"].values()}) > 1
+    assert set(per["gnbs"]) == set(per["edges"])
+
+    central, plan = run_factory(tmp_path, "central")
+    assert central["placement"] == "central" and central["backhaul_ms"] == 1.0
+    assert list(central["edges"]) == ["central"] and plan["edges"] == {"central": list(range(40))}
+    assert central["edges"]["central"]["gnbs"] == [0, 1, 2, 3]
+    assert set(central["gnbs"]) == set(per["gnbs"])  # the PDP is still reported per gNB

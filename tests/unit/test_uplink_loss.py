@@ -1,0 +1,136 @@
+"""Frames sent and never received count as lost: the sent-frame sequence in the frame bodies,
+the Edge's monitor counting its gaps, and the cap it drives past capacity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_conformance import CASES, Input, drive, tiny_scenario
+
+from domain.congestion import (
+    CELL_ALPHA,
+    LOOP_ALPHA,
+    LOSS_TARGET,
+    LOST_AFTER_US,
+    LoadControl,
+    UplinkMonitor,
+)
+
+PERIOD_US = 50_000
+FRAME_US = 33_333
+
+
+def test_a_gap_in_the_sequence_counts_as_lost_once_its_timeout_passes() -> None:
+    mon = UplinkMonitor()
+    mon.frame(0, 0, 20_000, 0)
+    mon.frame(0, 33_000, 53_000, 1)
+    mon.frame(0, 133_000, 153_000, 4)  # 2 and 3 were sent and are missing from now
+    assert mon.period(153_000 + LOST_AFTER_US - 1) == (0.0, 0.0)
+    _, loss = mon.period(153_000 + LOST_AFTER_US)
+    assert loss == pytest.approx(CELL_ALPHA * 1.0)  # two lost, no frame complete this period
+    assert mon.estimate(0).loss == pytest.approx(1 - (1 - LOOP_ALPHA) ** 2)
+    assert mon.period(153_000 + 2 * LOST_AFTER_US)[1] == pytest.approx(loss)  # counted once
+
+
+def test_frames_the_camera_dropped_for_its_pdp_take_no_number_and_count_nothing() -> None:
+    mon = UplinkMonitor()
+    # Captures 0-9, every third kept (PDP 1/3): the sent frames are numbered 0, 1, 2, 3.
+    for seq, capture in enumerate(range(0, 10, 3)):
+        t = capture * FRAME_US
+        mon.started(0, seq, t + 15_000)
+        mon.frame(0, t, t + 20_000, seq)
+    assert mon.period(10 * FRAME_US + LOST_AFTER_US) == (0.0, 0.0)
+    assert mon.estimate(0).loss == 0.0
+
+
+def test_reordered_frames_duplicates_and_late_frames_count_once() -> None:
+    mon = UplinkMonitor()
+    mon.started(0, 0, 10_000)
+    mon.started(0, 2, 12_000)  # frame 1 overtaken in HARQ: expected from now
+    mon.frame(0, 0, 15_000, 2)
+    mon.started(0, 1, 20_000)
+    mon.frame(0, 0, 25_000, 1)
+    mon.frame(0, 0, 26_000, 0)
+    mon.started(0, 2, 30_000)  # a packet of a frame already complete: no new frame expected
+    mon.started(1, 0, 30_000)  # another loop numbers its own frames
+    mon.frame(1, 0, 35_000, 0)
+    assert mon.period(30_000 + 2 * LOST_AFTER_US)[1] == 0.0
+    mon.started(0, 3, 600_000)  # never completes: lost by its timeout ...
+    mon.frame(0, 600_000, 610_000, 4)
+    _, loss = mon.period(600_000 + LOST_AFTER_US)
+    assert loss == pytest.approx(CELL_ALPHA * 0.5)
+    mon.started(0, 3, 900_000)  # ... and a packet of it arriving later starts nothing
+    mon.frame(0, 900_000, 910_000, 5)
+    assert mon.period(900_000 + 2 * LOST_AFTER_US)[1] == pytest.approx(loss * (1 - CELL_ALPHA))
+
+
+def test_frames_that_never_started_and_one_left_incomplete_are_both_lost() -> None:
+    mon = UplinkMonitor()
+    mon.frame(0, 0, 20_000, 0)
+    mon.period(40_000)
+    mon.started(0, 1, 50_000)  # incomplete
+    mon.frame(0, 0, 120_000, 3)  # 2 discarded whole at the UE
+    _, loss = mon.period(120_000 + LOST_AFTER_US)
+    assert loss == pytest.approx(CELL_ALPHA * 2 / 3)  # 1 and 2 lost, 3 complete
+
+
+def test_the_detailed_camera_numbers_the_frames_it_sends_only(tmp_path: Path) -> None:
+    camera = next(c for c in CASES if c.name == "camera-0")
+    images = [i for i in camera.inputs(tiny_scenario()) if i.kind == "image"]
+    # PDP 0 from 20 ms (the second capture dropped), 1 again from 50 ms.
+    inputs = images + [Input(t, "netsim", "net", "qos", {"type": "qos", "loop": 0, "pdp": pdp, "pdb_us": None,
+                                                         "packet_id": k})
+                       for k, (t, pdp) in enumerate([(20_000, 0.0), (50_000, 1.0)])]
+    result = drive(camera, tmp_path, arrival_seed=1, jump=False, inputs=inputs)
+    assert result.error is None, result.error
+    sent = {o[6]["app"]["frame_id"]: o[6]["app"]["seq"] for o in result.outputs if o[5] == "packet"}
+    captures = sorted(sent)
+    assert captures != list(range(len(captures))), "the script's PDP dropped no frame"
+    assert [sent[f] for f in captures] == list(range(len(captures)))
+
+
+def cell(loops: int, capacity: int, periods: int, seq: bool) -> tuple[LoadControl, list[float]]:
+    """``loops`` cameras at 30 frame/s sending at the cap of a load control whose Edge sees a
+    cell that carries ``capacity`` frames a policy period, drawn at random, with a constant
+    20 ms delay and discards the rest whole at the UEs (the PDB); ``seq``: the Edge knows the
+    sent sequence. The load control and the injected frames, period by period."""
+    mon, load = UplinkMonitor(), LoadControl(0.025, 0.06, 0.1)
+    rng = np.random.default_rng(1)
+    sent = [0] * loops
+    credit = [i / loops for i in range(loops)]  # the cameras' captures are not aligned
+    injected = []
+    for k in range(periods):
+        now = k * PERIOD_US
+        load.update(now, *mon.period(now))
+        frames = []
+        for i in range(loops):  # 1.5 frames a period at the cap (a policy asking PDP 1)
+            credit[i] += 1.5 * load.cap
+            while credit[i] >= 1.0:
+                credit[i] -= 1.0
+                frames.append((i, sent[i]))
+                sent[i] += 1
+        injected.append(len(frames))
+        for j in sorted(rng.permutation(len(frames))[:capacity]):
+            i, s = frames[j]
+            mon.frame(i, now, now + 20_000, s if seq else None)
+    return load, injected
+
+
+@pytest.mark.parametrize(("loops", "capacity"), [(100, 60), (128, 29)])
+def test_past_capacity_the_cap_holds_the_injected_traffic_near_what_the_cell_delivers(loops: int,
+                                                                                        capacity: int) -> None:
+    # 1.5 frames a loop a period offered: 2.5x and 6.6x what the cell carries (a cap of 0.4, 0.15)
+    _, injected = cell(loops, capacity, 300, seq=True)
+    late = injected[100:]  # the cap cycles around a loss of LOSS_TARGET
+    assert 0.9 * capacity < sum(late) / len(late) < capacity / (1 - LOSS_TARGET)
+    assert max(late) < 1.5 * capacity
+    # Without the sequence the Edge sees only frames that arrive, on time: the cap never moves.
+    blind, injected = cell(loops, capacity, 200, seq=False)
+    assert blind.cap == 1.0 and min(injected[100:]) == 1.5 * loops
+
+
+def test_below_capacity_the_sequence_changes_nothing() -> None:
+    load, injected = cell(20, 60, 100, seq=True)  # 20 or 40 frames a period, all carried
+    assert load.cap == 1.0 and load.fill == 1.0 and max(injected) <= 60
