@@ -9,6 +9,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,10 @@ class Launcher(ABC):
         """What the runtime sees of a failed federate's resources that explains its failure
         (e.g. a node stuck at its memory limit), or None."""
         return None
+
+    def placement(self) -> dict[str, dict[str, Any]]:
+        """Where each federate ran, for ``kpis.json`` (e.g. the Ray node), or {} when on this host."""
+        return {}
 
     @abstractmethod
     def stop(self, grace_s: float = 5.0) -> None:

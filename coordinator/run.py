@@ -130,6 +130,9 @@ def execute_run(
             client = docker_client()
             reap_dead_runs(client)  # leftovers of runs whose coordinator died
             launcher = DockerLauncher(client)
+        elif scenario.runtime == "ray":
+            from coordinator.runtime_ray import RayLauncher
+            launcher = RayLauncher()  # joins the cluster; RayRuntimeError before the run starts
         else:
             from coordinator.runtime_process import ProcessLauncher
             launcher = ProcessLauncher()
@@ -261,6 +264,9 @@ def execute_run(
         # Per node: host score, scale to the reference core, speed during the run, drift flag.
         "compute_speed": {n: s["compute_speed"] for n, s in summaries.items() if "compute_speed" in s},
     })
+    placement = launcher.placement()
+    if placement:  # which node ran which federate (runtime ray)
+        kpis["placement"] = placement
     write_json(run_dir / "kpis.json", kpis)
     write_json(run_dir / "status.json", {"run_id": run_id, "status": status, "reason": reason,
                                          "seed": scenario.seed})

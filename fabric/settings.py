@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -54,6 +54,16 @@ class Settings(BaseSettings):
                                     "zenoh router by")
     federate_metrics_port: int | None = Field(default=None, ge=1, le=65535,
                                               description="the port each federate container serves metrics on")
+    # The ray runtime's coordinator (coordinator.runtime_ray).
+    ray_address: str | None = Field(default=None, description="the Ray cluster a `runtime: ray` run joins: "
+                                    "auto or HOST:PORT (default: start a local one for the run)")
+    ray_router_host: str | None = Field(default=None, description="the address Ray nodes reach the "
+                                        "coordinator's zenoh router at (default: the coordinator's Ray node "
+                                        "address when joining a cluster, 127.0.0.1 for a local one)")
+    ray_placement: Literal["PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD"] = Field(
+        default="PACK", description="the Ray placement strategy of a run's federate processes")
+    ray_placement_timeout_s: float = Field(default=30.0, gt=0, allow_inf_nan=False,
+                                           description="longest wait for Ray to place a run's federates, s")
 
 
 def settings(**given: Any) -> Settings:

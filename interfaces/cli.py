@@ -104,6 +104,21 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ray_launcher(sc: Scenario, address: str | None) -> Any:
+    """The run's Ray launcher, its cluster joined and its CPUs reserved, before the run starts;
+    RuntimeError saying what is missing."""
+    from coordinator.run import federate_specs
+    from coordinator.runtime_ray import RayLauncher
+
+    launcher = RayLauncher(address=address)
+    try:
+        launcher.reserve(federate_specs(sc))
+    except BaseException:
+        launcher.stop()
+        raise
+    return launcher
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from coordinator.run import execute_run
 
@@ -112,6 +127,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ScenarioError as exc:
         print(f"{args.file}: invalid scenario\n{exc.format()}", file=sys.stderr)
         return 2
+    launcher = None
+    if args.address and sc.runtime != "ray":
+        print(f"--address is for runtime ray, and this run's runtime is {sc.runtime}: add --set runtime=ray",
+              file=sys.stderr)
+        return 2
+    if sc.runtime == "ray":
+        try:
+            launcher = _ray_launcher(sc, args.address)
+        except RuntimeError as exc:
+            print(str(exc), file=sys.stderr)
+            return 2
     cancel = cancel_on_signals()
     shows = [] if args.quiet else [_progress_printer(sys.stderr)]
     if args.progress_file:
@@ -121,7 +147,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         for show in shows:
             show(p)
 
-    result = execute_run(sc, Path(args.results), on_progress=progress, cancel=cancel, run_id=args.run_id)
+    result = execute_run(sc, Path(args.results), launcher=launcher, on_progress=progress, cancel=cancel,
+                         run_id=args.run_id)
     k = result.kpis
     if k.get("status") != RunState.COMPLETED:
         print(f"run {result.run_id} {k.get('status')}: {k.get('reason')}", file=sys.stderr)
@@ -370,6 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--results", default=str(DEFAULT_RESULTS), help="folder for run directories")
     r.add_argument("--run-id", type=_run_id, help="name of the run directory (default: scenario-time-random)")
     r.add_argument("--progress-file", help="write the progress as JSON to this file while the run goes")
+    r.add_argument("--address", help="runtime ray: the Ray cluster to join (auto or HOST:PORT); default "
+                   "$COSIM5G_RAY_ADDRESS, else a local cluster started for the run")
     r.set_defaults(fn=cmd_run)
     s = sub.add_parser("serve", help="REST API: start runs, follow them, /metrics")
     s.add_argument("--host", action="append", help="address or name to listen on (repeatable; default "

@@ -479,7 +479,9 @@ class Scenario(Strict):
 
     name: str = Field(default="scenario", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="scenario name")
     seed: int = Field(default=1, ge=0, description="root seed of every random stream")
-    runtime: Literal["process", "docker"] = Field(default="process", description="where federates run")
+    runtime: Literal["process", "docker", "ray"] = Field(
+        default="process", description="where federates run: local processes, containers, or Ray actors "
+        "on a Ray cluster (docs/architecture.md sec. 8)")
     cohost: Literal["core", "none"] = Field(
         default="core",
         description="core: physics, netsim and the abstract loops (the federates without a compute "

@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from support import MODEL_TIMING, processes_with
+from support import MODEL_TIMING, local_ray_cluster, processes_with
 
 from coordinator.run import free_port
 
@@ -105,22 +102,8 @@ def test_killed_sweep_resumes_with_only_the_missing_points_and_reports(tmp_path:
 @pytest.fixture
 def ray_cluster():  # type: ignore[no-untyped-def]
     pytest.importorskip("ray")
-    ray = str(Path(sys.executable).parent / "ray")
-    port = free_port()
-    # Ray's session folder holds unix sockets, whose paths must stay short (pytest's tmp_path is long).
-    temp = Path(tempfile.mkdtemp(prefix="ray-", dir="/tmp"))
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
-    common = ["--node-ip-address=127.0.0.1", "--num-cpus=1", "--disable-usage-stats"]
-    try:
-        subprocess.run([ray, "start", "--head", f"--port={port}", "--include-dashboard=false",
-                        f"--temp-dir={temp}", *common], check=True, env=env, capture_output=True,
-                       timeout=180)
-        subprocess.run([ray, "start", f"--address=127.0.0.1:{port}", *common], check=True, env=env,
-                       capture_output=True, timeout=180)
-        yield f"127.0.0.1:{port}"
-    finally:
-        subprocess.run([ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
-        shutil.rmtree(temp, ignore_errors=True)
+    with local_ray_cluster(free_port(), 1) as address:
+        yield address
 
 
 def test_ray_executor_gives_the_same_kpis_as_the_local_one(tmp_path: Path, ray_cluster: str) -> None:
