@@ -78,8 +78,10 @@ def compute_kpis(run_dir: Path, sim_time_s: float, loops: int) -> dict[str, Any]
     latency_ms = _as_ms(pc.filter(pk["latency_us"], delivered))
     ul_latency_ms = _as_ms(pc.filter(pk["latency_us"], pc.and_(delivered, is_ul)))
     per_ue = pk.filter(is_ul).group_by("ue").aggregate([("size_bytes", "sum")]).to_pydict()
+    # The loops' cameras only: moving radios (AGVs) load the cell but are no camera.
     camera_mbps = {ue: b * 8 / sim / 1e6
-                   for ue, b in sorted(zip(per_ue["ue"], per_ue["size_bytes_sum"], strict=True))}
+                   for ue, b in sorted(zip(per_ue["ue"], per_ue["size_bytes_sum"], strict=True))
+                   if ue.startswith("camera-")}
     lost_counts = pc.value_counts(pc.filter(pk["lost_cause"], pc.invert(delivered))).to_pylist()
     placed = sum(1 for t in tasks if t["success"])
     by_cell: Counter[int] = Counter(t["work_cell"] for t in tasks)

@@ -63,8 +63,15 @@ FRAMES = pa.schema([
 ])
 """Per frame: camera rows (pdp, kept, bytes, packets) and Edge rows (complete, detections, lost)."""
 
+HANDOVERS = pa.schema([
+    ("ue", _S), ("source", _I), ("target", _I), ("start_us", _I), ("end_us", _I),
+    ("forwarded", _I), ("lost", _I),
+])
+"""Per completed handover of a moving radio (netsim): source and target gNB index, the
+interruption from start to end, the held packets forwarded to the target or lost."""
+
 TABLES: dict[str, pa.Schema] = {"tasks": TASKS, "packets": PACKETS, "jobs": JOBS, "frames": FRAMES,
-                                 "transmissions": TRANSMISSIONS}
+                                 "transmissions": TRANSMISSIONS, "handovers": HANDOVERS}
 
 
 class TableError(ValueError):

@@ -18,13 +18,17 @@ from msgspec.structs import replace
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
+from netsim.nr.agv_traffic import AgvTraffic
+from netsim.nr.handover import HandoverParams
 from netsim.nr.layout import layout_from_hall
+from netsim.nr.mobility import Fleet, agv_ids, agv_routes
 from netsim.nr.multicell import MultiCell
 from netsim.nr.radio_cell import NrCell
 from netsim.radio_cell import (
     LOSS_BUFFER,
     LOSS_CHANNEL,
     LOSS_DELAY_BUDGET,
+    LOSS_HANDOVER,
     FlowQos,
     Packet,
     PacketOutcome,
@@ -51,8 +55,18 @@ def make_cell(federate: Federate) -> RadioCell:
                           cfg.buffer_bytes, federate.rng("cell"))
     layout = layout_from_hall(sc.hall)
     if layout is not None:
+        agvs = sc.agvs
+        if not agvs.count:
+            return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
+                             stream_prefix=f"{federate.name}/nr", record=True)
+        traffic = AgvTraffic(agv_ids(agvs.count), agvs.ul_rate_mbps, agvs.dl_rate_mbps,
+                             agvs.ul_packet_bytes, agvs.dl_packet_bytes,
+                             None if agvs.delay_budget_ms is None
+                             else round(agvs.delay_budget_ms * 1000))
         return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
-                         stream_prefix=f"{federate.name}/nr", record=True)
+                         stream_prefix=f"{federate.name}/nr", record=True,
+                         fleet=Fleet(agv_routes(sc)), agv_traffic=traffic,
+                         handover=HandoverParams.from_config(cfg.handover))
     return NrCell(cfg.nr, gnb_position_m=sc.hall.gnb_position_m,
                   ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=f"{federate.name}/nr")
 
@@ -84,6 +98,7 @@ class NetsimFederate(Federate):
         self.packets = self.table("packets")
         # Every run has the table, empty with one gNB (the model keeps no transmissions then).
         self.transmissions = self.table("transmissions")
+        self.handovers = self.table("handovers")
         self.serving = self.cell.serving()
         self.flow_pdb: dict[str, int | None] = {}
         # Simulated-time rates for the dashboards, refreshed every simulated second.
@@ -92,7 +107,8 @@ class NetsimFederate(Federate):
         # The metric series of each direction and fate, looked up once: a label lookup per packet
         # costs more than the update. Every loss cause has its series from the start, at zero.
         self.packet_series = {(d, fate): metrics.PACKETS.labels(d, fate) for d in ("ul", "dl")
-                              for fate in ("delivered", "lost", LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET)}
+                              for fate in ("delivered", "lost", LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET,
+                                           LOSS_HANDOVER)}
         self.byte_series = {d: metrics.PACKET_BYTES.labels(d) for d in ("ul", "dl")}
         self.latency_series = {d: metrics.PACKET_LATENCY.labels(d) for d in ("ul", "dl")}
         # Counts go to their series once a slot, not once a packet (tens of thousands a second).
@@ -101,6 +117,8 @@ class NetsimFederate(Federate):
         # Packets in the cell for a federate outside this one's group, per (UE, direction)
         # (``external_horizon_us``).
         self.outside_in_cell: Counter[tuple[str, str]] = Counter()
+        if self.cell.has_pending():  # moving radios' streams run from the start
+            self._ensure_slot(0)
 
     def next_send_us(self, plane: str, now_us: int) -> int:
         return now_us if plane == "net" else NEVER_US  # deliveries are its only messages
@@ -205,13 +223,17 @@ class NetsimFederate(Federate):
         sent = self.cell.transmissions()
         if sent:
             self.transmissions.extend_columns(sent)
+        handed = self.cell.handovers()
+        if handed and handed["ue"]:
+            self.handovers.extend_columns(handed)
         if self.outside_in_cell.total():
             for o in outcomes:
                 p = o.packet
-                if p.ref[0] not in self.cohosted:
+                if p.ref is not None and p.ref[0] not in self.cohosted:
                     self.outside_in_cell[p.ue, p.direction] -= 1
         for outcome in outcomes:
-            if outcome.deliver_us is None:
+            # An AGV's packets (no ref) go to no federate: their records are all there is.
+            if outcome.deliver_us is None or outcome.packet.ref is None:
                 continue
             dst, app, blob, idx = outcome.packet.ref
             key = (dst, outcome.deliver_us)

@@ -15,6 +15,7 @@ Direction = Literal["ul", "dl"]
 LOSS_CHANNEL = "channel"  # residual error after HARQ (or the simple cell's loss draw)
 LOSS_DELAY_BUDGET = "delay_budget"  # older than its flow's packet delay budget at the sender
 LOSS_BUFFER = "buffer_overflow"  # sender buffer full on arrival
+LOSS_HANDOVER = "handover"  # held for a UE during its handover, not forwarded to the target cell
 
 
 # Packets and outcomes are made by the ten thousand a simulated second: plain classes with an
@@ -128,4 +129,9 @@ class RadioCell(ABC):
     def transmissions(self) -> dict[str, list[Any]] | None:
         """The radio transmissions made since the last call, as the columns of the
         ``transmissions`` table (None: the model keeps none)."""
+        return None
+
+    def handovers(self) -> dict[str, list[Any]] | None:
+        """The handovers of moving radios completed since the last call, as the columns of the
+        ``handovers`` table (None: the model moves no radio)."""
         return None

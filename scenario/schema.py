@@ -190,6 +190,10 @@ class AgvConfig(Strict):
                                  description="IP size of an uplink video packet, bytes")
     dl_packet_bytes: int = Field(default=120, ge=40, le=9000,
                                  description="IP size of a downlink control packet, bytes")
+    delay_budget_ms: float | None = Field(default=150.0, gt=0, le=10000, description="packet "
+                                          "delay budget of both streams, ms: older packets are "
+                                          "discarded at the sender (default 150: 5QI 2's "
+                                          "live video budget, TS 23.501 Table 5.7.4-1); none: none")
 
     @field_validator("waypoints_m")
     @classmethod
@@ -550,10 +554,6 @@ class Scenario(Strict):
                 raise ValueError(
                     f"agvs.waypoints_m[{i}] = ({x:g}, {y:g}) m lies outside the hall floor "
                     f"(0..{hall.length_m:g} x 0..{hall.width_m:g} m): every waypoint must lie on it")
-        if agvs.count:
-            raise ValueError(
-                f"agvs.count = {agvs.count}: AGV routes and handover are modelled "
-                f"(netsim/nr/mobility.py, handover.py) but no run drives them yet: set agvs.count = 0")
         return self
 
     def _cells_in_hall(self) -> None:

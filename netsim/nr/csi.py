@@ -63,6 +63,15 @@ class Csi:
         self.stale_ul = self.stale_dl = True
         self.eesm_cache.clear()
 
+    def move(self, u: int, ul_snr: float, dl_snr: float, ul_pc_snr: float) -> None:
+        """UE index ``u`` moved: its mean SNRs per PRB (linear; ``ul_pc_snr`` at its power-control
+        target, read by ``InterferenceCsi``) are now these; every estimate is stale."""
+        self.ul_snr[u] = ul_snr
+        self.dl_snr[u] = dl_snr
+        self.ul_snr_arr[u] = ul_snr
+        self.dl_snr_arr[u] = dl_snr
+        self.channel_changed()
+
     def eesm(self, u: int, p0: int, n: int, mcs: int, ul: bool) -> float:
         """Effective SINR (linear) of UE index ``u`` on PRBs [``p0``, ``p0`` + ``n``) with the
         EESM beta of ``mcs`` (subband gains weighted by the PRBs each contributes), uplink if
@@ -214,6 +223,13 @@ class InterferenceCsi(Csi):
         self._full_over_ipn = [x / i for x, i in zip(self.ul_snr, ul, strict=True)]
         self._dl_over_ipn = [x / i for x, i in zip(self.dl_snr, dl, strict=True)]
         self.channel_changed()
+
+    def move(self, u: int, ul_snr: float, dl_snr: float, ul_pc_snr: float) -> None:
+        """``Csi.move``, with the power-control target; the next ``report`` is taken at once."""
+        self.ul_pc_snr[u] = ul_pc_snr
+        super().move(u, ul_snr, dl_snr, ul_pc_snr)
+        self._reported_ul = []
+        self.report()
 
     def ul_scale(self, u: int, n: int) -> float:
         """Mean SNR per PRB (linear, before fading and interference) of UE index ``u``'s PUSCH

@@ -124,3 +124,12 @@ class HarqEntity:
     def pending(self) -> bool:
         """Whether a retransmission is queued."""
         return bool(self._retx)
+
+    def drop(self, ue: int) -> list[TransportBlock]:
+        """UE index ``ue`` leaves the cell (a handover): its TBs waiting for a retransmission are
+        taken out, in their order, and their processes freed."""
+        dropped = [tb for tb in self._retx if tb.ue == ue]
+        if dropped:
+            self._retx = [tb for tb in self._retx if tb.ue != ue]
+            self._busy[ue] -= len(dropped)
+        return dropped

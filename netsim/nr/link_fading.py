@@ -33,15 +33,21 @@ class LinkFading:
 
     Links are numbered ``ue * n_gnb + gnb``; ``used`` (n_ue, n_gnb, bool) marks those that may
     carry a signal or interference, drawn here (their stream, K-factor, LOS phases and first
-    state); the others never are. After ``refresh(links, update)``, ``gain[link]`` holds each
+    state); the others never are. With ``used_dl_interference`` (n_ue, n_gnb, bool), the
+    downlink interference at a UE from a gNB that does not serve it has a process of its own,
+    numbered ``n_ue * n_gnb + ue * n_gnb + gnb`` (``dl_interference_offset``), stream
+    ``<prefix>/fading-dl/<ue>/<gnb id>``: each process is then stepped by one gNB's cell only
+    (docs/architecture.md sec. 13). After ``refresh(links, update)``, ``gain[link]`` holds each
     of those links' power gains per subband (mean 1) at grid update ``update`` (slot index //
     ``period``). With ``fading: none`` every gain is 1.
     """
 
     def __init__(self, ue_ids: list[str], gnb_ids: list[str], los: np.ndarray, n_subbands: int,
-                 cfg: NrConfig, seed: int, stream_prefix: str, used: np.ndarray) -> None:
+                 cfg: NrConfig, seed: int, stream_prefix: str, used: np.ndarray,
+                 used_dl_interference: np.ndarray | None = None) -> None:
         n_ue, n_gnb = len(ue_ids), len(gnb_ids)
-        n_links = n_ue * n_gnb
+        self.dl_interference_offset = n_ue * n_gnb
+        n_links = n_ue * n_gnb * (1 if used_dl_interference is None else 2)
         self.ue_ids = ue_ids
         self.gnb_ids = gnb_ids
         self.n_gnb = n_gnb
@@ -51,7 +57,7 @@ class LinkFading:
         self.enabled = cfg.fading != "none"
         self.k_mean_db = cfg.k_factor_mean_db
         self.k_std_db = cfg.k_factor_std_db
-        self.los = np.asarray(los, dtype=bool).reshape(n_links)
+        self.los = np.asarray(los, dtype=bool).reshape(n_ue * n_gnb)
         self.period = cfg.channel_update_period_slots
         doppler_hz = cfg.ue_speed_kmh / 3.6 * cfg.carrier_frequency_hz / SPEED_OF_LIGHT_M_S
         self.rho = ar1_coefficient(doppler_hz, self.period * cfg.slot_us * 1e-6)
@@ -69,7 +75,10 @@ class LinkFading:
         self._innovations_c = self._innovations.view(np.complex64)[..., 0]
         self._next = np.full(n_links, INNOVATION_BLOCK, dtype=np.int64)
         if self.enabled:
-            for link in np.flatnonzero(used).tolist():
+            marks = [np.asarray(used, dtype=bool).reshape(-1)]
+            if used_dl_interference is not None:
+                marks.append(np.asarray(used_dl_interference, dtype=bool).reshape(-1))
+            for link in np.flatnonzero(np.concatenate(marks)).tolist():
                 self._start(link)
 
     def refresh(self, links: np.ndarray, update: int) -> None:
@@ -114,11 +123,13 @@ class LinkFading:
 
     def _start(self, link: int) -> None:
         """First use of ``link``: its stream, K-factor, LOS phases and diffuse state."""
-        ue, gnb = divmod(link, self.n_gnb)
-        gen = named_rng(self.seed, f"{self.prefix}/fading/{self.ue_ids[ue]}/{self.gnb_ids[gnb]}")
+        pair = link % self.dl_interference_offset
+        kind = "fading" if link < self.dl_interference_offset else "fading-dl"
+        ue, gnb = divmod(pair, self.n_gnb)
+        gen = named_rng(self.seed, f"{self.prefix}/{kind}/{self.ue_ids[ue]}/{self.gnb_ids[gnb]}")
         self._gens[link] = gen
         k_db = float(gen.normal(self.k_mean_db, self.k_std_db))
-        k_lin = 10 ** (k_db / 10) if self.los[link] else 0.0
+        k_lin = 10 ** (k_db / 10) if self.los[pair] else 0.0
         m = self.n_subbands
         phases = gen.uniform(0, 2 * math.pi, m)
         self._los_term[link] = math.sqrt(k_lin / (k_lin + 1)) * np.exp(1j * phases)
@@ -150,6 +161,13 @@ class ServingLinks(SubbandGains):
         self.gain = np.ones((self.n_ue, self.n_subbands))
         self._rows = [None] * self.n_ue
         self._update: int | None = None
+
+    def move(self, u: int, ul_snr_fullband_db: float, dl_snr_db: float) -> None:
+        """UE index ``u`` moved: its mean SNRs (dB, as the constructor's) are now these."""
+        self.ul_snr_fullband_db[u] = ul_snr_fullband_db
+        self.dl_snr_db[u] = dl_snr_db
+        self.ul_snr_fullband[u] = 10 ** (ul_snr_fullband_db / 10)
+        self.dl_snr[u] = 10 ** (dl_snr_db / 10)
 
     def advance(self, slot: int) -> bool:
         """Bring the links to slot index ``slot``; True if their gains changed (never without

@@ -7,18 +7,21 @@ each is computed per PRB from the other co-channel cells' transmissions of that 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from netsim.nr.agv_traffic import AgvTraffic
 from netsim.nr.gnb_cell import GnbCell
+from netsim.nr.handover import HandoverControl, HandoverParams, ping_pongs
 from netsim.nr.interference import serving_gnb
-from netsim.nr.large_scale import InfLinks
+from netsim.nr.large_scale import InfLinks, InfMaps
 from netsim.nr.layout import InfLayout
 from netsim.nr.link_fading import LinkFading, ServingLinks
+from netsim.nr.mobility import Fleet
 from netsim.nr.sinr import slot_sinr
-from netsim.radio_cell import FlowQos, Packet, PacketOutcome, RadioCell
+from netsim.radio_cell import LOSS_HANDOVER, FlowQos, Packet, PacketOutcome, RadioCell
 from scenario.nr import NrConfig
 
 # SINR histogram of the transmissions per link: 0.5 dB bins from -30 dB to 70 dB (clamped).
@@ -39,14 +42,40 @@ class MultiCell(RadioCell):
 
     ``serving_gnb_index`` maps each UE id to its gNB's index in ``layout``; ``cells`` holds the
     cells of the gNBs that serve a UE (a gNB serving none sends nothing and is left out).
+
+    A partition of the hall holds the cells of ``own_gnbs`` only (None: every gNB), seeing the
+    whole hall's large scale; each slot it takes the other partitions' transmissions of the
+    slot before (``run_slot``'s ``remote``) and gives its own (``slot_transmissions``): with the
+    same seed the partitions' outcomes are the whole hall's.
+
+    Moving radios (docs/netsim.md, "Mobility and handover"): ``fleet`` drives the AGVs of
+    ``agv_traffic`` (its UE ids, in order), whose streams enter every slot. Each AGV is a UE of
+    every gNB's cell (then every gNB has a cell), attached to one at a time; its large scale
+    follows its position (``large_scale.InfMaps``, read every measurement period) and
+    ``handover`` moves it between cells on the A3 event (``handover.HandoverControl``, streams
+    ``<stream_prefix>/handover/<ue>``). The fading of a link keeps the LOS state of the AGV's
+    start.
     """
 
     def __init__(self, config: NrConfig, layout: InfLayout,
                  ue_positions_m: Mapping[str, tuple[float, float, float]], seed: int,
-                 stream_prefix: str = "netsim/nr", record: bool = False) -> None:
+                 stream_prefix: str = "netsim/nr", record: bool = False,
+                 fleet: Fleet | None = None, agv_traffic: AgvTraffic | None = None,
+                 handover: HandoverParams | None = None,
+                 own_gnbs: Sequence[int] | None = None) -> None:
         cfg = config
         if not ue_positions_m:
             raise ValueError("ue_positions_m is empty: a cell needs at least one UE")
+        agv_ids = [] if agv_traffic is None else list(agv_traffic.agv_ids)
+        if agv_ids and (fleet is None or len(fleet) != len(agv_ids) or handover is None):
+            raise ValueError(f"{len(agv_ids)} AGVs need a fleet of as many routes and handover "
+                             "settings")
+        if own_gnbs is not None and agv_ids:
+            raise ValueError("a partition of the hall (own_gnbs) cannot hold AGVs yet: their "
+                             "handovers cross partitions")
+        own = set(range(layout.n_gnb) if own_gnbs is None else own_gnbs)
+        if not own <= set(range(layout.n_gnb)):
+            raise ValueError(f"own_gnbs {sorted(own)} must be gNB indices 0..{layout.n_gnb - 1}")
         n_cell_prb = cfg.n_prb // layout.reuse
         if n_cell_prb < 1:
             raise ValueError(f"n_prb = {cfg.n_prb} leaves no PRB per cell with reuse "
@@ -56,44 +85,65 @@ class MultiCell(RadioCell):
         self.n_cell_prb = n_cell_prb
         self.layout = layout
         ue_ids = list(ue_positions_m)
+        n_static = len(ue_ids)
         pos = np.array([ue_positions_m[u] for u in ue_ids], dtype=float).reshape(-1, 3)
-        n_ue, n_gnb = len(ue_ids), layout.n_gnb
+        n_gnb = layout.n_gnb
         self.n_gnb = n_gnb
-        links = InfLinks(layout, pos, cfg.carrier_frequency_hz, seed, f"{stream_prefix}/inf",
-                         cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi, cfg.los_mode,
-                         cfg.shadowing_enabled)
+        self.fleet = fleet
+        self.agv_traffic = agv_traffic
+        self.maps: InfMaps | None = None
+        if agv_ids:
+            assert fleet is not None
+            # The maps read at the static UEs give InfLinks' values (the same streams).
+            self.maps = InfMaps(layout, cfg.carrier_frequency_hz, seed, f"{stream_prefix}/inf",
+                                cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi, cfg.los_mode,
+                                cfg.shadowing_enabled)
+            ue_ids += agv_ids
+            pos = np.vstack([pos, fleet.positions_m(0)])
+            links: InfLinks | Any = self.maps.links(pos)
+        else:
+            links = InfLinks(layout, pos, cfg.carrier_frequency_hz, seed, f"{stream_prefix}/inf",
+                             cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi, cfg.los_mode,
+                             cfg.shadowing_enabled)
+        n_ue = len(ue_ids)
         self.links = links
         serving = serving_gnb(links.coupling_loss_db)
         rows = np.arange(n_ue)
         # Mean SNR per PRB of every link with the whole power over the cell's carrier, as the
         # single cell computes it (InfSlChannel); the interference margin counts as noise.
         prb_bw_hz = 12 * cfg.subcarrier_spacing_hz
-        noise_prb_dbm = cfg.noise_psd_dbm_per_hz + 10 * math.log10(prb_bw_hz)
-        coupling_db = (cfg.gnb_antenna_gain_dbi + cfg.ue_antenna_gain_dbi - links.pathloss_db
-                       - links.shadowing_db - cfg.interference_margin_db
-                       - 10 * math.log10(n_cell_prb))
-        ul_db = cfg.ue_tx_power_dbm + coupling_db - noise_prb_dbm - cfg.gnb_noise_figure_db
-        dl_db = cfg.gnb_tx_power_dbm + coupling_db - noise_prb_dbm - cfg.ue_noise_figure_db
+        self._noise_prb_dbm = cfg.noise_psd_dbm_per_hz + 10 * math.log10(prb_bw_hz)
+        ul_db, dl_db, pc_all_db = self._link_snr_db(links.pathloss_db, links.shadowing_db,
+                                                    links.coupling_loss_db)
         self.ul_snr = 10 ** (ul_db / 10)  # (n_ue, n_gnb): at gNB g from UE u
         self.dl_snr = 10 ** (dl_db / 10)  # (n_ue, n_gnb): at UE u from gNB g
-        # UL open-loop power control (TS 38.213 7.1.1): P0 + 10 log10(2^mu) + alpha PL per PRB,
-        # PL the coupling loss to the serving gNB; capped at P_CMAX by GnbCell's CSI.
-        mu = round(math.log2(cfg.subcarrier_spacing_hz / 15000))
-        cl_serving = links.coupling_loss_db[rows, serving]
-        pc_db = (layout.ul_p0_dbm + 10 * math.log10(2**mu) + layout.ul_alpha * cl_serving
-                 - cl_serving - cfg.interference_margin_db - noise_prb_dbm
-                 - cfg.gnb_noise_figure_db)
-        pc_snr = 10 ** (pc_db / 10)
+        pc_all = 10 ** (pc_all_db / 10)
+        pc_snr = pc_all[rows, serving]
         groups = layout.groups
-        has_ues = np.bincount(serving, minlength=n_gnb) > 0
+        # With AGVs every gNB may serve one: each has a cell.
+        has_ues = (np.bincount(serving, minlength=n_gnb) > 0) | bool(agv_ids)
         ipn_ul, ipn_dl = _geometry_ipn(serving, groups, has_ues, self.ul_snr, self.dl_snr,
                                        pc_snr)
         # The links that can carry a signal or interference: to the serving gNB, and to every
-        # other gNB of its frequency group that serves UEs.
+        # other gNB of its frequency group that serves UEs; every link of an AGV.
         used = (groups[None, :] == groups[serving][:, None]) & has_ues[None, :]
+        used[n_static:] = True
+        # An AGV's starting interference estimates in each cell, as if that cell served it.
+        agv_rows = np.arange(n_static, n_ue)
+        agv_ipn: list[tuple[np.ndarray, np.ndarray]] = []
+        for g in range(n_gnb if agv_ids else 0):
+            at_g = serving.copy()
+            at_g[agv_rows] = g
+            agv_pc = pc_snr.copy()
+            agv_pc[agv_rows] = pc_all[agv_rows, g]
+            agv_ipn.append(_geometry_ipn(at_g, groups, has_ues, self.ul_snr, self.dl_snr,
+                                         agv_pc))
+        # Downlink interference at a UE from a gNB not serving it: processes of their own.
+        used_dl = used.copy()
+        used_dl[np.arange(n_static), serving[:n_static]] = False
         self.fading = fading = LinkFading(
             ue_ids, list(layout.gnb_ids), links.los, math.ceil(n_cell_prb / cfg.subband_prb),
-            cell_cfg, seed, stream_prefix, used)
+            cell_cfg, seed, stream_prefix, used, used_dl)
         self.serving_gnb_index: dict[str, int] = {ue: int(g) for ue, g in zip(ue_ids, serving,
                                                                                strict=True)}
         self.cells: list[GnbCell] = []
@@ -103,29 +153,74 @@ class MultiCell(RadioCell):
         self._serving_links: list[np.ndarray] = []
         self._no_links = np.zeros(0, dtype=np.int64)
         self._update = -1
+        self.cell_static: list[int] = []  # the number of static UEs of each cell
+        self.cell_of_gnb: list[GnbCell | None] = [None] * n_gnb
+        positions = {ue: (float(p[0]), float(p[1]), float(p[2])) for ue, p in zip(ue_ids, pos,
+                                                                                   strict=True)}
         for g in range(n_gnb):
-            members = np.flatnonzero(serving == g)
-            if not members.size:
+            members = np.flatnonzero(serving[:n_static] == g)
+            static = members.size
+            if g not in own or (not static and not agv_ids):
                 continue
+            members = np.concatenate([members, agv_rows]).astype(np.int64)
             ch = ServingLinks(fading, members * n_gnb + g, ul_db[members, g], dl_db[members, g],
                               links.los[members, g], links.d3d_m[members, g])
+            pc = pc_snr[members]
+            ipn = (ipn_ul[members], ipn_dl[members])
+            if agv_ids:
+                pc[static:] = pc_all[agv_rows, g]
+                ipn[0][static:] = agv_ipn[g][0][agv_rows]
+                ipn[1][static:] = agv_ipn[g][1][agv_rows]
             x, y, z = (float(v) for v in layout.gnb_positions_m[g])
-            cell = GnbCell(cell_cfg, (x, y, z), {ue_ids[m]: ue_positions_m[ue_ids[m]]
+            cell = GnbCell(cell_cfg, (x, y, z), {ue_ids[m]: positions[ue_ids[m]]
                                                   for m in members.tolist()},
                            seed, f"{stream_prefix}/{layout.gnb_ids[g]}", ch,
-                           pc_snr[members].tolist(), ipn_ul[members].tolist(),
-                           ipn_dl[members].tolist())
+                           pc.tolist(), ipn[0].tolist(), ipn[1].tolist())
             self.cells.append(cell)
             self._serving_links.append(ch.links)
             self.cell_gnb.append(g)
             self.cell_ues.append(members.tolist())
+            self.cell_static.append(static)
+            self.cell_of_gnb[g] = cell
             for m in members.tolist():
-                self._cell_of[ue_ids[m]] = cell
+                if serving[m] == g:
+                    self._cell_of[ue_ids[m]] = cell
+                else:
+                    cell.detach(ue_ids[m], 0)  # an AGV served elsewhere
         self.ue_ids = ue_ids
+        self.agv_ids = agv_ids
+        self._n_static = n_static
+        self.handover: HandoverControl | None = None
+        self._refused: list[PacketOutcome] = []  # where an attach puts the packets it refuses
+        self._agv_db: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0),
+                                                                    np.zeros(0))
+        self._move_period_us = 0
+        self._rs_dbm = 0.0
+        self._queues: list[_GnbQueues] = []
+        self._next_move_us = 0
+        self._handover_lost = 0
+        self._handover_rows: list[Any] = []
+        if agv_ids:
+            assert handover is not None
+            self.handover = HandoverControl(handover, agv_ids, serving[agv_rows], n_gnb, seed,
+                                            f"{stream_prefix}/handover")
+            self._move_period_us = handover.measurement_period_us
+            # RSRP per RE: the gNB's power over every subcarrier of its carrier, less the
+            # coupling loss (TS 38.215 5.1.1); only differences between gNBs matter to A3.
+            self._rs_dbm = cfg.gnb_tx_power_dbm - 10 * math.log10(12 * n_cell_prb)
+            self._queues = [_GnbQueues(self, g) for g in range(n_gnb)]
+            assert agv_traffic is not None
+            budget = agv_traffic.delay_budget_us
+            for flow, direction in agv_traffic.flows():
+                # The loops' priorities: DL before UL.
+                qos = FlowQos(priority=5 if direction == "dl" else 10, delay_budget_us=budget)
+                for c in self.cells:
+                    c.set_flow_qos(flow, qos)
         self._groups = groups
         self._subband_prb = cfg.subband_prb
         self._period = cell_cfg.channel_update_period_slots
         self._last_slot: int | None = None
+        self._planned: _Planned | None = None
         self.next_slot_us = 0
         self.slots = 0
         self.sinr_hist = {"ul": np.zeros(SINR_HIST_BINS, dtype=np.int64),
@@ -134,9 +229,113 @@ class MultiCell(RadioCell):
         self.record = record
         self._records: dict[str, list[Any]] = _empty_records()
 
+    def _link_snr_db(self, pathloss_db: np.ndarray, shadowing_db: np.ndarray,
+                     coupling_loss_db: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per link (n_ue, n_gnb), dB: the mean SNR per PRB with the whole power over the
+        cell's carrier, UL and DL, as the single cell computes it (InfSlChannel, the
+        interference margin counting as noise), and the UL SNR per PRB at the power-control
+        target if that gNB served the UE (TS 38.213 7.1.1: P0 + 10 log10(2^mu) + alpha PL per
+        PRB, PL the coupling loss; GnbCell's CSI caps it at P_CMAX)."""
+        cfg, layout = self.config, self.layout
+        noise = self._noise_prb_dbm
+        coupling_db = (cfg.gnb_antenna_gain_dbi + cfg.ue_antenna_gain_dbi - pathloss_db
+                       - shadowing_db - cfg.interference_margin_db
+                       - 10 * math.log10(self.n_cell_prb))
+        ul_db = cfg.ue_tx_power_dbm + coupling_db - noise - cfg.gnb_noise_figure_db
+        dl_db = cfg.gnb_tx_power_dbm + coupling_db - noise - cfg.ue_noise_figure_db
+        mu = round(math.log2(cfg.subcarrier_spacing_hz / 15000))
+        pc_db = (layout.ul_p0_dbm + 10 * math.log10(2**mu) + layout.ul_alpha * coupling_loss_db
+                 - coupling_loss_db - cfg.interference_margin_db - noise
+                 - cfg.gnb_noise_figure_db)
+        return ul_db, dl_db, pc_db
+
+    # ------------------------------------------------------------------ moving radios
+    def _agv_slot(self, t_us: int, out: list[PacketOutcome]) -> None:
+        """The AGVs at the start of the slot at ``t_us`` (us): handovers ending and starting,
+        their large scale moved to where they are, and their streams' new packets in."""
+        control = self.handover
+        fleet = self.fleet
+        maps = self.maps
+        assert control is not None and fleet is not None and maps is not None
+        if t_us >= self._next_move_us:
+            self._move_agvs(t_us)
+            self._next_move_us = t_us - t_us % self._move_period_us + self._move_period_us
+        if control.next_event_us() <= t_us:
+            rs = self._rs_dbm
+
+            def rsrp_dbm(t: int) -> np.ndarray:
+                return rs - maps.coupling_loss_db(fleet.positions_m(t))
+
+            tick = control.tick(t_us, rsrp_dbm, self._queues)
+            for h in tick.completed:
+                self._handover_rows.append(h)
+                for p in h.lost:
+                    out.append(PacketOutcome(p, None, LOSS_HANDOVER))
+                self._handover_lost += len(h.lost)
+        traffic = self.agv_traffic
+        assert traffic is not None
+        due = traffic.due(t_us)
+        if due:
+            out += self.enqueue_many(due)
+
+    def _move_agvs(self, t_us: int) -> None:
+        """Read every AGV's large scale at its position at ``t_us`` (us): the hall's link SNRs
+        (which the interference reads) and its serving cell's channel."""
+        maps, fleet = self.maps, self.fleet
+        assert maps is not None and fleet is not None
+        state = maps.links(fleet.positions_m(t_us))
+        ul_db, dl_db, pc_db = self._link_snr_db(state.pathloss_db, state.shadowing_db,
+                                                state.coupling_loss_db)
+        rows = slice(self._n_static, len(self.ue_ids))
+        self.ul_snr[rows] = 10 ** (ul_db / 10)
+        self.dl_snr[rows] = 10 ** (dl_db / 10)
+        self._agv_db = (ul_db, dl_db, 10 ** (pc_db / 10))
+        for a, ue in enumerate(self.agv_ids):
+            cell = self._cell_of.get(ue)
+            if cell is not None:
+                self._move_in(cell, a)
+
+    def _move_in(self, cell: GnbCell, a: int) -> None:
+        """Give AGV ``a``'s current link to ``cell``'s gNB to that cell."""
+        k = self.cells.index(cell)
+        g = self.cell_gnb[k]
+        ul_db, dl_db, pc = self._agv_db
+        cell.move(self.cell_static[k] + a, float(ul_db[a, g]), float(dl_db[a, g]),
+                  float(pc[a, g]))
+
+    def _detach(self, g: int, ue: str, t_us: int) -> list[Packet]:
+        cell = self.cell_of_gnb[g]
+        assert cell is not None
+        self._cell_of.pop(ue, None)
+        return cell.detach(ue, t_us)
+
+    def _attach(self, g: int, ue: str, t_us: int, packets: list[Packet]) -> None:
+        cell = self.cell_of_gnb[g]
+        assert cell is not None
+        self._move_in(cell, self.agv_ids.index(ue))
+        self._cell_of[ue] = cell
+        self.serving_gnb_index[ue] = g
+        self._refused += cell.attach(ue, t_us, packets)
+
+    def handovers(self) -> dict[str, list[Any]] | None:
+        """The handovers completed since the last call, as the columns of the ``handovers``
+        table (None without moving radios)."""
+        if self.handover is None:
+            return None
+        rows, self._handover_rows = self._handover_rows, []
+        return {"ue": [h.ue for h in rows], "source": [h.source for h in rows],
+                "target": [h.target for h in rows], "start_us": [h.start_us for h in rows],
+                "end_us": [h.end_us for h in rows], "forwarded": [h.forwarded for h in rows],
+                "lost": [len(h.lost) for h in rows]}
+
     # ------------------------------------------------------------------ interface
     def enqueue(self, packet: Packet) -> PacketOutcome | None:
-        """Put ``packet`` in its UE's cell (``NrCell.enqueue``)."""
+        """Put ``packet`` in its UE's cell (``NrCell.enqueue``); a moving radio's during its
+        handover is held for the target cell."""
+        cell = self._cell_of.get(packet.ue)
+        if cell is None and self.handover is not None and packet.ue in self.handover.index:
+            self.handover.hold(packet.ue, [packet])
+            return None
         return self._cell(packet).enqueue(packet)
 
     def enqueue_many(self, packets: Iterable[Packet]) -> list[PacketOutcome]:
@@ -145,12 +344,17 @@ class MultiCell(RadioCell):
         batch = packets if isinstance(packets, list) else list(packets)
         refused: list[PacketOutcome] = []
         i, n = 0, len(batch)
+        control = self.handover
         while i < n:
             ue = batch[i].ue
             j = i + 1
             while j < n and batch[j].ue == ue:
                 j += 1
-            refused += self._cell(batch[i]).enqueue_many(batch if j - i == n else batch[i:j])
+            run = batch if j - i == n else batch[i:j]
+            if control is not None and ue not in self._cell_of and ue in control.index:
+                control.hold(ue, run)
+            else:
+                refused += self._cell(batch[i]).enqueue_many(run)
             i = j
         return refused
 
@@ -160,10 +364,15 @@ class MultiCell(RadioCell):
             raise ValueError(f"packet {packet.packet_id}: unknown UE {packet.ue!r}")
         return cell
 
-    def run_slot(self, slot_start_us: int) -> list[PacketOutcome]:
+    def run_slot(self, slot_start_us: int, remote: Mapping[str, list[Tx]] | None = None
+                 ) -> list[PacketOutcome]:
         """Simulate the slot at ``slot_start_us`` (us, a multiple of ``slot_us``, later than the
-        last) in every cell with work: each decides its transmissions, then each transmission's
-        SINR is computed, then each cell decodes. The outcomes, cell by cell."""
+        last) in every cell with work, one slot late (docs/architecture.md sec. 13, "Decode one
+        slot late"): first the transmissions planned at the last call are decoded, each at its
+        SINR against every co-channel transmission of that slot, this hall's and ``remote``'s
+        (the other partitions' of that slot, per link; ``slot_transmissions`` gave them there),
+        and their packets delivered at the end of this slot; then each cell with work decides
+        this slot's transmissions (``slot_transmissions``). The outcomes, cell by cell."""
         slot_us = self.slot_us
         if slot_start_us % slot_us:
             raise ValueError(f"slot_start_us={slot_start_us} is not a multiple of the slot "
@@ -175,6 +384,14 @@ class MultiCell(RadioCell):
         self._last_slot = s
         self.next_slot_us = slot_start_us + slot_us
         self.slots += 1
+        out: list[PacketOutcome] = []
+        planned = self._planned
+        if planned is not None:  # else nothing of this hall's to interfere with
+            self._planned = None
+            self._decode(planned, remote or {}, out)
+        if self.handover is not None:
+            self._refused = out
+            self._agv_slot(slot_start_us, out)
         active = [k for k, cell in enumerate(self.cells) if cell.has_pending()]
         cells = self.cells
         update = s // self._period
@@ -187,10 +404,34 @@ class MultiCell(RadioCell):
         for k in active:
             cells[k].open_slot(slot_start_us)
         plans = [cells[k].plan_slot(s) for k in active]
-        dl_sinr, dl_inr = self._sinr(active, [p[0] for p in plans], False, update)
-        ul_sinr, ul_inr = self._sinr(active, [p[1] for p in plans], True, update)
-        out: list[PacketOutcome] = []
+        if active:
+            self._planned = _Planned(s, update, active, plans,
+                                     self._tx_rows(active, [p[0] for p in plans], False),
+                                     self._tx_rows(active, [p[1] for p in plans], True))
+        if self.agv_traffic is not None:
+            self.agv_traffic.count(out)
+        return out
+
+    def slot_transmissions(self) -> dict[str, list[Tx]]:
+        """The transmissions the last ``run_slot`` decided, per link, as the other partitions'
+        ``run_slot`` takes them (``remote``): (gNB index, the transmitting radio's hall index
+        in UL or the receiving one's in DL, first PRB, PRBs, mean SNR per PRB before fading)."""
+        planned = self._planned
+        if planned is None:
+            return {"dl": [], "ul": []}
+        return {"dl": planned.dl.txs, "ul": planned.ul.txs}
+
+    def _decode(self, planned: _Planned, remote: Mapping[str, list[Tx]],
+                out: list[PacketOutcome]) -> None:
+        """Decode the transmissions of ``planned`` against them and ``remote``'s, adding the
+        outcomes to ``out``, delivered a slot after the end of the slot they were sent in."""
+        s, update, active, plans = planned.slot, planned.update, planned.active, planned.plans
+        slot_us = self.slot_us
+        dl_sinr, dl_inr = self._sinr(planned.dl, remote.get("dl", []), False, update)
+        ul_sinr, ul_inr = self._sinr(planned.ul, remote.get("ul", []), True, update)
+        cells = self.cells
         i_dl = i_ul = 0
+        first = len(out)
         for k, (pdsch, pusch) in zip(active, plans, strict=True):
             cell = cells[k]
             n_dl, n_ul = len(pdsch), len(pusch)
@@ -203,25 +444,21 @@ class MultiCell(RadioCell):
             for j, (_, tb) in enumerate(pusch):
                 csi.measured(tb.ue, True, ul_inr[i_ul + j])
             if self.record:
-                self._record(slot_start_us, k, [tb for tb, _ in pdsch], dl_sinr[i_dl:i_dl + n_dl],
+                self._record(s * slot_us, k, [tb for tb, _ in pdsch], dl_sinr[i_dl:i_dl + n_dl],
                              [tb for _, tb in pusch], ul_sinr[i_ul:i_ul + n_ul], decoded)
             i_dl += n_dl
             i_ul += n_ul
+        for o in out[first:]:
+            if o.deliver_us is not None:
+                o.deliver_us += slot_us
         self._histogram("dl", dl_sinr)
         self._histogram("ul", ul_sinr)
-        return out
 
-    def _sinr(self, active: list[int], per_cell: list[Any], ul: bool, update: int
-              ) -> tuple[list[float], list[float]]:
-        """Effective SINR and mean interference over noise (linear) of the transmissions of
-        one link of the active cells (``per_cell``: each cell's PDSCH or PUSCH list, in the
-        order of ``active``), in that order."""
-        cell_of_tx: list[int] = []
-        ue_of_tx: list[int] = []
-        p0: list[int] = []
-        n: list[int] = []
-        scale: list[float] = []
-        beta: list[float] = []
+    def _tx_rows(self, active: list[int], per_cell: list[Any], ul: bool) -> _TxRows:
+        """The transmissions of one link of the active cells (``per_cell``: each cell's PDSCH or
+        PUSCH list, in the order of ``active``), in that order, as rows: ``txs`` (``Tx``) and
+        each one's EESM beta."""
+        rows = _TxRows()
         for k, txs in zip(active, per_cell, strict=True):
             if not txs:
                 continue
@@ -233,20 +470,38 @@ class MultiCell(RadioCell):
             for a, b in txs:
                 if ul:
                     tb, first, size = b, a.prb_start, a.n_prb
-                    scale.append(csi.ul_scale(tb.ue, size))
+                    scale = csi.ul_scale(tb.ue, size)
                 else:
                     tb, first, size = a, b, a.n_prb
-                    scale.append(csi.dl_snr[tb.ue])
-                cell_of_tx.append(g)
-                ue_of_tx.append(ues[tb.ue])
-                p0.append(first)
-                n.append(size)
-                beta.append(betas[tb.mcs])
-        if not cell_of_tx:
+                    scale = csi.dl_snr[tb.ue]
+                rows.txs.append((g, ues[tb.ue], first, size, scale))
+                rows.beta.append(betas[tb.mcs])
+        return rows
+
+    def _sinr(self, own: _TxRows, remote: list[Tx], ul: bool, update: int
+              ) -> tuple[list[float], list[float]]:
+        """Effective SINR and mean interference over noise (linear) of the transmissions
+        ``own`` of one link, against ``own`` and ``remote``'s (another partition's, their
+        results unused), in ``own``'s order."""
+        if not own.txs:
             return [], []
-        c = np.array(cell_of_tx)
-        u = np.array(ue_of_tx)
-        scale_arr = np.array(scale)
+        n_own = len(own.txs)
+        txs = own.txs
+        beta = own.beta
+        if remote:
+            # One order whatever the partitioning: by gNB, each cell's own order kept, so
+            # every victim sums its interferers in the same order.
+            merged = sorted([(t[0], 0, i) for i, t in enumerate(own.txs)]
+                            + [(t[0], 1, i) for i, t in enumerate(remote)])
+            txs = [own.txs[i] if side == 0 else remote[i] for _, side, i in merged]
+            beta = [own.beta[i] if side == 0 else 1.0 for _, side, i in merged]
+            mine = np.array([i for i, (_, side, _) in enumerate(merged) if side == 0])
+        arr = np.array(txs)
+        c = arr[:, 0].astype(np.int64)
+        u = arr[:, 1].astype(np.int64)
+        p0 = arr[:, 2].astype(np.int64)
+        n = arr[:, 3].astype(np.int64)
+        scale_arr = arr[:, 4]
         groups = self._groups[c]
         co_channel = (groups[:, None] == groups[None, :]) & (c[:, None] != c[None, :])
         n_gnb = self.n_gnb
@@ -258,10 +513,15 @@ class MultiCell(RadioCell):
             cross_links = u[None, :] * n_gnb + c[:, None]
         else:
             cross = self.dl_snr[u[:, None], c[None, :]]
-            cross_links = u[:, None] * n_gnb + c[None, :]
-        eff, inr = slot_sinr(np.array(p0), np.array(n), scale_arr, np.array(beta),
-                             u * n_gnb + c, np.where(co_channel, cross, 0.0), cross_links,
-                             self.fading, update, self._subband_prb)
+            # The downlink interference's own fading processes (one owner each).
+            cross_links = (self.fading.dl_interference_offset + u[:, None] * n_gnb
+                           + c[None, :])
+        eff, inr = slot_sinr(p0, n, scale_arr, np.array(beta), u * n_gnb + c,
+                             np.where(co_channel, cross, 0.0), cross_links, self.fading, update,
+                             self._subband_prb)
+        if remote:
+            eff, inr = eff[mine], inr[mine]
+        assert len(eff) == n_own
         return eff.tolist(), inr.tolist()
 
     def _histogram(self, link: str, sinr: list[float]) -> None:
@@ -316,8 +576,10 @@ class MultiCell(RadioCell):
         return self.serving_gnb_index
 
     def has_pending(self) -> bool:
-        """True while a cell has work (``NrCell.has_pending``)."""
-        return any(cell.has_pending() for cell in self.cells)
+        """True while a slot waits to be decoded or a cell has work (``NrCell.has_pending``);
+        always with AGVs, whose streams never stop."""
+        return (self._planned is not None or self.agv_traffic is not None
+                or any(cell.has_pending() for cell in self.cells))
 
     def earliest_delivery_us(self, ue: str, direction: str) -> int | None:
         """``NrCell.earliest_delivery_us`` of the UE's cell, not before the next slot the hall
@@ -326,7 +588,8 @@ class MultiCell(RadioCell):
         if cell is None:
             return None
         at = cell.earliest_delivery_us(ue, direction)
-        return None if at is None else max(at, self.next_slot_us)
+        # Decoded one slot late: delivered a slot after the slot that carries it ends.
+        return None if at is None else max(at, self.next_slot_us) + self.slot_us
 
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
         """``NrCell.set_flow_qos`` in the UE's cell, or in every cell without ``ue``."""
@@ -352,6 +615,8 @@ class MultiCell(RadioCell):
         for st in per_cell:
             for cause, count in st["lost_packets"].items():
                 lost[cause] = lost.get(cause, 0) + count
+        if self.handover is not None:
+            lost[LOSS_HANDOVER] = self._handover_lost
         out["lost_packets"] = lost
         out["pdcch_missed"] = sum(st["pdcch_missed"] for st in per_cell)
         prb_slots = slots * self.n_cell_prb
@@ -376,16 +641,82 @@ class MultiCell(RadioCell):
                 "sinr_db_p95": _hist_percentile(hist, 95),
             }
             for k, st in enumerate(per_cell):
-                gnb = out.setdefault(f"gnb{self.cell_gnb[k]}", {"ue_count": len(self.cell_ues[k])})
+                gnb = out.setdefault(f"gnb{self.cell_gnb[k]}", {"ue_count": self.cell_static[k]})
                 gnb[link] = {"prb_utilisation": used[k] / prb_slots,
                              "delivered_bytes": st[link]["delivered_bytes"],
                              "bler_first_transmission": st[link]["bler_first_transmission"]}
         ues: dict[str, Any] = {}
         for k, st in enumerate(per_cell):
             for ue, row in st["ues"].items():
-                ues[ue] = {**row, "gnb": self.cell_gnb[k]}
+                # An AGV is a UE of every cell: its row is its serving cell's.
+                if self.serving_gnb_index[ue] == self.cell_gnb[k]:
+                    ues[ue] = {**row, "gnb": self.cell_gnb[k]}
         out["ues"] = ues
+        if self.handover is not None and self.agv_traffic is not None:
+            out["agvs"] = self._agv_stats(ues)
         return out
+
+    def _agv_stats(self, ues: dict[str, Any]) -> dict[str, Any]:
+        """The AGVs' KPIs: handovers (started, completed, ping-pongs within 1 s), interruption
+        time, held packets forwarded and lost, and per link their packets' loss and latency
+        percentiles; per AGV the same in its ``ues`` row."""
+        control = self.handover
+        traffic = self.agv_traffic
+        assert control is not None and traffic is not None
+        done = [h for h in control.handovers if h.done]
+        summary = traffic.summary()
+        per_agv = summary.pop("per_agv")
+        for ue, row in per_agv.items():
+            mine = [h for h in control.handovers if h.ue == ue]
+            ues.setdefault(ue, {"gnb": self.serving_gnb_index[ue]}).update(
+                {**row, "handovers": len(mine)})
+        return {"count": len(self.agv_ids), "handovers": len(control.handovers),
+                "handovers_completed": len(done), "ping_pongs": ping_pongs(control.handovers),
+                "interruption_s": sum((h.end_us - h.start_us) for h in done) / 1e6,
+                "forwarded_packets": sum(h.forwarded for h in done),
+                "lost_packets_handover": self._handover_lost, **summary}
+
+
+# One transmission as the partitions exchange it: gNB index, radio's hall UE index, first PRB,
+# PRBs, mean SNR per PRB before fading (linear).
+Tx = tuple[int, int, int, int, float]
+
+
+class _TxRows:
+    """The transmissions of one link of a slot and their EESM betas, in decoding order."""
+
+    def __init__(self) -> None:
+        self.txs: list[Tx] = []
+        self.beta: list[float] = []
+
+
+class _Planned:
+    """A slot whose transmissions are decided and not yet decoded: its index, fading grid
+    update, active cells (indices into ``MultiCell.cells``), their plans and the rows of each
+    link."""
+
+    def __init__(self, slot: int, update: int, active: list[int], plans: list[Any],
+                 dl: _TxRows, ul: _TxRows) -> None:
+        self.slot = slot
+        self.update = update
+        self.active = active
+        self.plans = plans
+        self.dl = dl
+        self.ul = ul
+
+
+class _GnbQueues:
+    """gNB ``g`` of a ``MultiCell`` as the handover control sees it (``handover.CellQueues``)."""
+
+    def __init__(self, hall: MultiCell, g: int) -> None:
+        self.hall = hall
+        self.g = g
+
+    def detach(self, ue: str, t_us: int) -> list[Any]:
+        return self.hall._detach(self.g, ue, t_us)
+
+    def attach(self, ue: str, t_us: int, packets: list[Any]) -> None:
+        self.hall._attach(self.g, ue, t_us, packets)
 
 
 def _geometry_ipn(serving: np.ndarray, groups: np.ndarray, has_ues: np.ndarray,

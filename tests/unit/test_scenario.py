@@ -96,7 +96,7 @@ def test_old_field_names_load_once_with_a_warning_naming_the_new_ones(tmp_path: 
 
 
 def test_hall_has_no_inf_layout_unless_asked_and_takes_one_by_subset_or_positions() -> None:
-    assert all((load_scenario(p).hall.inf_layout is None) == (p.stem != "factory_small")
+    assert all((load_scenario(p).hall.inf_layout is None) == (p.stem not in ("factory_small", "factory"))
                for p in SCENARIOS)
     sc = parse_scenario({}, ["hall.inf_layout.gnb_count=6", "hall.inf_layout.reuse=3"])
     layout = sc.hall.inf_layout
@@ -153,8 +153,9 @@ def test_no_agvs_unless_asked_and_handover_defaults() -> None:
     ({"hall": {"inf_layout": {}}, "agvs": {"count": 1, "waypoints_m": [[10, 10], [130, 10]]}},
      "(scenario)", r"agvs\.waypoints_m\[1\] = \(130, 10\) m lies outside the hall floor "
      r"\(0\.\.120 x 0\.\.60 m\)"),
-    ({"hall": {"inf_layout": {}}, "agvs": {"count": 2}}, "(scenario)",
-     r"agvs\.count = 2: AGV routes and handover are modelled .* but no run drives them yet"),
+    ({"hall": {"inf_layout": {}}, "agvs": {"count": 2}, "netsim": {"model": "simple"}},
+     "(scenario)", r"hall\.inf_layout needs netsim\.model = nr"),
+    ({"agvs": {"delay_budget_ms": 0}}, "agvs.delay_budget_ms", r"greater than 0"),
     ({"agvs": {"waypoints_m": [[10, -1], [20, 10]]}}, "(scenario)",
      r"agvs\.waypoints_m\[0\] = \(10, -1\) m lies outside"),
     ({"agvs": {"speed_m_s": 2.5}}, "agvs.speed_m_s",

@@ -70,11 +70,11 @@ def _send(cell: MultiCell, ue: str, t_us: int, pid: int, direction: str = "ul") 
 
 def _run(cell: MultiCell, slots: range, sends: dict[int, list[str]] | None = None,
          direction: str = "ul") -> dict[str, list]:
-    """Run ``slots``, the UEs of ``sends[slot]`` each handing 4 packets to its modem then; the
-    transmissions."""
+    """Run ``slots`` and the one after (the hall decodes a slot one slot late), the UEs of
+    ``sends[slot]`` each handing 4 packets to its modem then; the transmissions of ``slots``."""
     rec: dict[str, list] = {}
     pid = 0
-    for s in slots:
+    for s in [*slots, slots[-1] + 1]:
         for ue in (sends or {}).get(s, []):
             _send(cell, ue, s * 1000, pid, direction)
             pid += 10
@@ -195,13 +195,19 @@ def test_same_seed_same_outcomes_and_another_seed_others() -> None:
 def test_one_gnb_is_the_single_cell_when_the_radio_is_the_same() -> None:
     """The same gNB, a deterministic radio (forced LOS, no shadowing, no fading, no control
     errors) and P0 at P_CMAX (the single cell's full power): the multi-cell path, its streams
-    named under the gNB's id, decides every packet as NrCell does, in the same order."""
+    named under the gNB's id, decides every packet as NrCell does, in the same order, and
+    delivers it one slot later (it decodes a slot one slot late)."""
     cfg = _flat()
     gnb, ues = camera_layout(12, cfg)
     single = NrCell(cfg, gnb, ues, 5, stream_prefix="netsim/nr/gnb-0")
     layout = InfLayout.explicit("SL", *HALL, [gnb], ul_p0_dbm=24.0)
     multi = MultiCell(cfg, layout, ues, 5)
-    assert _drive(single, ues, 600) == _drive(multi, ues, 600)
+    alone = _drive(single, ues, 600)
+    late = _drive(multi, ues, 601)
+    decided = [(p, t, cause) for p, t, cause in alone if t is None or t < 600_000]
+    assert late[:len(decided)] == [(p, None if t is None else t + 1000, cause)
+                                   for p, t, cause in decided]
+    assert len(decided) > 5000
     assert single.stats()["ul"]["delivered_bytes"] == multi.stats()["ul"]["delivered_bytes"]
 
 
@@ -210,7 +216,8 @@ def test_one_gnb_with_fading_and_power_control_stays_close_to_the_single_cell() 
     one gNB delivers what the single cell delivers below capacity, and over capacity (24
     cameras, 200 Mbit/s) a few percent less: power control lowers the SNR, so the MCS."""
     cfg = NrConfig()
-    for n, rel in ((12, 0.001), (24, 0.08)):
+    # 0.2 %: below capacity the hall's last slot is still to be decoded (one slot late).
+    for n, rel in ((12, 0.002), (24, 0.08)):
         gnb, ues = camera_layout(n, cfg)
         layout = InfLayout.explicit("SL", *HALL, [gnb])
         single, multi = NrCell(cfg, gnb, ues, 2), MultiCell(cfg, layout, ues, 2)
