@@ -136,18 +136,21 @@ def execute_run(
         else:
             from coordinator.runtime_process import ProcessLauncher
             launcher = ProcessLauncher()
-    run_id = run_id or new_run_id(scenario)
-    run_dir = (results_root / run_id).resolve()
-    run_dir.mkdir(parents=True, exist_ok=False)
-    scenario_path = run_dir / "config.yaml"
-    scenario_path.write_text(dump_scenario(scenario))
-    write_json(run_dir / "versions.json", versions())
-    write_json(run_dir / "status.json", {"run_id": run_id, "status": RunState.RUNNING, "seed": scenario.seed})
-
-    wall0 = time.monotonic()
+    try:  # what the launcher holds already (a Ray session) is released if the run cannot start
+        run_id = run_id or new_run_id(scenario)
+        run_dir = (results_root / run_id).resolve()
+        run_dir.mkdir(parents=True, exist_ok=False)
+        scenario_path = run_dir / "config.yaml"
+        scenario_path.write_text(dump_scenario(scenario))
+        write_json(run_dir / "versions.json", versions())
+        write_json(run_dir / "status.json", {"run_id": run_id, "status": RunState.RUNNING, "seed": scenario.seed})
+        wall0 = time.monotonic()
+        port = free_port()
+        router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
+    except BaseException:
+        launcher.stop()
+        raise
     conducted_s: float | None = None  # wall time of the windows, once they all ran
-    port = free_port()
-    router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
     status, reason, failed_federate = RunState.COMPLETED, None, None
     log_tail: list[str] = []
     conductor = None

@@ -66,7 +66,7 @@ class Csi:
     def move(self, u: int, ul_snr: float, dl_snr: float, ul_pc_snr: float) -> None:
         """UE index ``u`` moved: its mean SNRs per PRB (linear; ``ul_pc_snr`` at its power-control
         target, read by ``InterferenceCsi``) are now these; every estimate is stale."""
-        self.ul_snr[u] = ul_snr
+        self.ul_snr[u] = ul_snr  # the channel's own lists where it shares them: no harm
         self.dl_snr[u] = dl_snr
         self.ul_snr_arr[u] = ul_snr
         self.dl_snr_arr[u] = dl_snr
@@ -225,11 +225,13 @@ class InterferenceCsi(Csi):
         self.channel_changed()
 
     def move(self, u: int, ul_snr: float, dl_snr: float, ul_pc_snr: float) -> None:
-        """``Csi.move``, with the power-control target; the next ``report`` is taken at once."""
+        """``Csi.move``, with the power-control target, over the interference estimates last
+        reported (the other UEs' CSI unchanged)."""
         self.ul_pc_snr[u] = ul_pc_snr
         super().move(u, ul_snr, dl_snr, ul_pc_snr)
-        self._reported_ul = []
-        self.report()
+        self._pc_over_ipn[u] = ul_pc_snr / self._reported_ul[u]
+        self._full_over_ipn[u] = ul_snr / self._reported_ul[u]
+        self._dl_over_ipn[u] = dl_snr / self._reported_dl[u]
 
     def ul_scale(self, u: int, n: int) -> float:
         """Mean SNR per PRB (linear, before fading and interference) of UE index ``u``'s PUSCH

@@ -188,10 +188,13 @@ class MultiCell(RadioCell):
                 else:
                     cell.detach(ue_ids[m], 0)  # an AGV served elsewhere
         self.ue_ids = ue_ids
+        self._hall_index = {ue: i for i, ue in enumerate(ue_ids)}
         self.agv_ids = agv_ids
+        self._agv_set = set(agv_ids)
         self._n_static = n_static
         self.handover: HandoverControl | None = None
-        self._refused: list[PacketOutcome] = []  # where an attach puts the packets it refuses
+        # Per AGV, the held packets its target cell refused at its attach (a full buffer).
+        self._attach_refused: dict[str, list[PacketOutcome]] = {}
         self._agv_db: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0),
                                                                     np.zeros(0))
         self._move_period_us = 0
@@ -272,6 +275,9 @@ class MultiCell(RadioCell):
                 for p in h.lost:
                     out.append(PacketOutcome(p, None, LOSS_HANDOVER))
                 self._handover_lost += len(h.lost)
+                refused = self._attach_refused.pop(h.ue, [])
+                h.forwarded -= len(refused)
+                out += refused
         traffic = self.agv_traffic
         assert traffic is not None
         due = traffic.due(t_us)
@@ -315,7 +321,7 @@ class MultiCell(RadioCell):
         self._move_in(cell, self.agv_ids.index(ue))
         self._cell_of[ue] = cell
         self.serving_gnb_index[ue] = g
-        self._refused += cell.attach(ue, t_us, packets)
+        self._attach_refused[ue] = cell.attach(ue, t_us, packets)
 
     def handovers(self) -> dict[str, list[Any]] | None:
         """The handovers completed since the last call, as the columns of the ``handovers``
@@ -388,9 +394,8 @@ class MultiCell(RadioCell):
         planned = self._planned
         if planned is not None:  # else nothing of this hall's to interfere with
             self._planned = None
-            self._decode(planned, remote or {}, out)
+            self._decode(planned, remote or {}, out, slot_start_us + slot_us)
         if self.handover is not None:
-            self._refused = out
             self._agv_slot(slot_start_us, out)
         active = [k for k, cell in enumerate(self.cells) if cell.has_pending()]
         cells = self.cells
@@ -422,9 +427,10 @@ class MultiCell(RadioCell):
         return {"dl": planned.dl.txs, "ul": planned.ul.txs}
 
     def _decode(self, planned: _Planned, remote: Mapping[str, list[Tx]],
-                out: list[PacketOutcome]) -> None:
+                out: list[PacketOutcome], deliver_us: int) -> None:
         """Decode the transmissions of ``planned`` against them and ``remote``'s, adding the
-        outcomes to ``out``, delivered a slot after the end of the slot they were sent in."""
+        outcomes to ``out``, the delivered ones at ``deliver_us`` (us: the end of the slot in
+        which they are decoded, the one after theirs)."""
         s, update, active, plans = planned.slot, planned.update, planned.active, planned.plans
         slot_us = self.slot_us
         dl_sinr, dl_inr = self._sinr(planned.dl, remote.get("dl", []), False, update)
@@ -450,7 +456,7 @@ class MultiCell(RadioCell):
             i_ul += n_ul
         for o in out[first:]:
             if o.deliver_us is not None:
-                o.deliver_us += slot_us
+                o.deliver_us = deliver_us
         self._histogram("dl", dl_sinr)
         self._histogram("ul", ul_sinr)
 
@@ -582,13 +588,20 @@ class MultiCell(RadioCell):
                 or any(cell.has_pending() for cell in self.cells))
 
     def earliest_delivery_us(self, ue: str, direction: str) -> int | None:
-        """``NrCell.earliest_delivery_us`` of the UE's cell, not before the next slot the hall
-        runs (a cell without work skips slots); None for an unknown UE."""
+        """A lower bound on the time (us) the hall may deliver, and so its federate send, a
+        packet of UE ``ue`` in ``direction`` held now; None for an unknown UE. A slot is decoded
+        at the start of the next one: the next slot the hall runs if the UE has a transmission
+        in the air, else a slot after the cell's own bound (``NrCell.earliest_delivery_us``, not
+        before the next slot the hall runs: a cell without work skips slots)."""
         cell = self._cell_of.get(ue)
         if cell is None:
             return None
+        planned = self._planned
+        if planned is not None:
+            u = self._hall_index[ue]
+            if u in (planned.ul_ues if direction == "ul" else planned.dl_ues):
+                return self.next_slot_us
         at = cell.earliest_delivery_us(ue, direction)
-        # Decoded one slot late: delivered a slot after the slot that carries it ends.
         return None if at is None else max(at, self.next_slot_us) + self.slot_us
 
     def set_flow_qos(self, flow: str, qos: FlowQos, ue: str | None = None) -> None:
@@ -648,8 +661,9 @@ class MultiCell(RadioCell):
         ues: dict[str, Any] = {}
         for k, st in enumerate(per_cell):
             for ue, row in st["ues"].items():
-                # An AGV is a UE of every cell: its row is its serving cell's.
-                if self.serving_gnb_index[ue] == self.cell_gnb[k]:
+                # An AGV is a UE of every cell, each counting its time there only: its row is
+                # the AGV's own (below).
+                if ue not in self._agv_set:
                     ues[ue] = {**row, "gnb": self.cell_gnb[k]}
         out["ues"] = ues
         if self.handover is not None and self.agv_traffic is not None:
@@ -668,8 +682,7 @@ class MultiCell(RadioCell):
         per_agv = summary.pop("per_agv")
         for ue, row in per_agv.items():
             mine = [h for h in control.handovers if h.ue == ue]
-            ues.setdefault(ue, {"gnb": self.serving_gnb_index[ue]}).update(
-                {**row, "handovers": len(mine)})
+            ues[ue] = {"gnb": self.serving_gnb_index[ue], **row, "handovers": len(mine)}
         return {"count": len(self.agv_ids), "handovers": len(control.handovers),
                 "handovers_completed": len(done), "ping_pongs": ping_pongs(control.handovers),
                 "interruption_s": sum((h.end_us - h.start_us) for h in done) / 1e6,
@@ -703,6 +716,9 @@ class _Planned:
         self.plans = plans
         self.dl = dl
         self.ul = ul
+        # The radios (hall UE indices) with a transmission in the slot, per link.
+        self.dl_ues = {tx[1] for tx in dl.txs}
+        self.ul_ues = {tx[1] for tx in ul.txs}
 
 
 class _GnbQueues:

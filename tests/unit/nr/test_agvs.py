@@ -66,6 +66,12 @@ def test_an_agv_hands_over_past_the_midpoint_and_back() -> None:
     # forwards), its UL through gNB 1 between the handovers.
     agv = [o for o in out if o.packet.ue == "agv-0"]
     assert agv and all(o.packet.packet_id < 0 for o in agv)
+    # Each packet decided once, every one but the last few still queued or in the air.
+    ids = [o.packet.packet_id for o in agv]
+    traffic = cell.agv_traffic
+    assert traffic is not None and len(ids) == len(set(ids))
+    made = -traffic._next_id - 1
+    assert set(ids) <= set(range(-made, 0)) and made - len(ids) < 20
     assert sum(o.cause == LOSS_HANDOVER for o in agv) == 0
     st = cell.stats()
     kpi = st["agvs"]
@@ -107,7 +113,7 @@ def test_detach_returns_every_undelivered_packet_once_and_attach_takes_them() ->
     planned, cell._planned = cell._planned, None
     assert planned is not None
     decoded: list[PacketOutcome] = []
-    cell._decode(planned, {}, decoded)
+    cell._decode(planned, {}, decoded, 211_000)
     delivered |= {o.packet.packet_id for o in decoded if o.delivered}
     held = src.detach("agv-0", 210_000)
     ids = [p.packet_id for p in held]

@@ -1,11 +1,14 @@
 """``NrCell.earliest_delivery_us`` is a lower bound: no packet the cell holds when asked arrives
-before the slot it names, whatever the channel, HARQ, control errors and delay budgets do."""
+before the slot it names, whatever the channel, HARQ, control errors and delay budgets do; and
+``MultiCell``'s, which decodes a slot one slot late, likewise."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from netsim.nr.layout import InfLayout
+from netsim.nr.multicell import MultiCell
 from netsim.nr.radio_cell import NrCell
 from netsim.radio_cell import FlowQos, Packet
 from scenario.nr import NrConfig
@@ -17,7 +20,7 @@ UES = {f"ue{i}": (10.0 + 12.0 * i, 8.0 + 5.0 * i, 1.5) for i in range(8)}
 class BoundWatch:
     """Drives a cell and checks every delivery against the bounds given while it held the packet."""
 
-    def __init__(self, cell: NrCell) -> None:
+    def __init__(self, cell: NrCell | MultiCell) -> None:
         self.cell = cell
         self.bound: dict[int, int] = {}  # packet id -> the latest bound given while the cell held it
         self.held: dict[tuple[str, str], set[int]] = {}
@@ -46,9 +49,16 @@ class BoundWatch:
                 self.late += o.deliver_us - self.cell.slot_us < self.bound[p.packet_id]
 
 
-@pytest.mark.parametrize("access", ["grant_based", "configured_grant"])
-def test_no_packet_arrives_before_the_bound_given_while_it_was_held(access: str) -> None:
-    cell = NrCell(NrConfig(ul_access=access, pdcch_miss_prob=0.02), GNB, UES, seed=3)
+@pytest.mark.parametrize(("access", "gnbs"), [("grant_based", 1), ("configured_grant", 1),
+                                              ("grant_based", 2)])
+def test_no_packet_arrives_before_the_bound_given_while_it_was_held(access: str,
+                                                                    gnbs: int) -> None:
+    cfg = NrConfig(ul_access=access, pdcch_miss_prob=0.02)
+    cell: NrCell | MultiCell = NrCell(cfg, GNB, UES, seed=3)
+    if gnbs == 2:
+        layout = InfLayout.explicit("SL", 120.0, 60.0, 10.0, [(30.0, 30.0, 8.0), (90.0, 30.0, 8.0)])
+        cell = MultiCell(cfg, layout, UES, seed=3)
+        assert set(cell.serving().values()) == {0, 1}
     slot = cell.slot_us
     cell.set_flow_qos("ue1-ul", FlowQos(delay_budget_us=12 * slot))
     rng = np.random.default_rng(7)
