@@ -20,7 +20,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help setup install run smoke test test-unit test-integration lint bench load bench-docker images up down \
-	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity soak chaos native \
+	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity reproduce-factory soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
@@ -69,7 +69,7 @@ test-unit: $(BIN)/cosim5g native ## fast unit tests only (in-memory bus)
 test-integration: $(BIN)/cosim5g native ## runs over real zenoh and real processes
 	$(BIN)/pytest -q -m integration
 
-bench: $(BIN)/cosim5g native ## benchmarks: conductor windows/s, smoke real-time factor, speed of 32-loop runs and netsim (results/bench/)
+bench: $(BIN)/cosim5g native ## benchmarks: conductor windows/s, smoke real-time factor, speed of 32-loop runs, of the 360-loop 18-gNB factory (5 s: the first tasks end) and of netsim (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
 	$(BIN)/python -m benchmarks.speed
 
@@ -100,6 +100,9 @@ reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the tra
 
 reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
 	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
+
+reproduce-factory: $(BIN)/cosim5g native ## InF-SL hall with 1, 4, 18 gNBs x none/heuristic/learned x 5..30 loops per gNB: capacity per layout and per gNB, SINR CDFs (long: 18-gNB points)
+	$(BIN)/cosim5g sweep configs/sweeps/factory_gnbs.yaml --jobs $(JOBS)
 
 reproduce-sensitivity: $(BIN)/cosim5g native ## task success vs a fixed extra uplink latency (0-200 ms) x frame loss (0-90%), three work cells, abstract then detailed loops
 	$(BIN)/cosim5g sweep configs/sweeps/sensitivity.yaml --jobs $(JOBS)

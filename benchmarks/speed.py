@@ -4,6 +4,10 @@ What the cases are and how the windows' wall time is split: docs/architecture.md
 Writes results/bench/speed.{md,json}; compare ratios within one run of this script.
 
     python -m benchmarks.speed [--duration-s 30] [--loops 32] [--docker] [--only k0,k1] [--profile]
+                               [--factory-s 5]
+
+The factory case is the 360-loop, 18-gNB hall of configs/scenarios/factory.yaml, short
+(``--factory-s``): 15 to 60 wall seconds per simulated second, and 20 s to a minute to set up.
 """
 
 from __future__ import annotations
@@ -28,16 +32,21 @@ from services.main import PROFILE_DIR_ENV
 from services.physics import stepper
 
 ROOT = Path(__file__).parents[1]
-CASES = ("k0", "k1", "netsim")
+CASES = ("k0", "k1", "factory", "netsim")
+# The factory's windows are long (360 loops, 18 cells): a window may take minutes of wall time.
+FACTORY_SETS = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.robot.timing=model",
+                "watchdog.window_timeout_s=600"]
 
 
 def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path,
-             profile_dir: Path | None = None, cohost: str = "core") -> dict[str, Any]:
-    """One run of the baseline scenario (policy none) at ``loops`` / ``detailed``; its speed and
-    where the wall time went. With ``profile_dir`` its federates write their cProfile there."""
-    sc = load_scenario(ROOT / "configs" / "scenarios" / "baseline.yaml",
+             profile_dir: Path | None = None, cohost: str = "core", scenario: str = "baseline",
+             sets: list[str] | None = None) -> dict[str, Any]:
+    """One run of ``scenario`` (the baseline, policy none) at ``loops`` / ``detailed``; its
+    speed, where the wall time went and its processes' peak memory. With ``profile_dir`` its
+    federates write their cProfile there."""
+    sc = load_scenario(ROOT / "configs" / "scenarios" / f"{scenario}.yaml",
                        [f"loops={loops}", f"detailed_loops={detailed}", f"duration_s={duration_s}",
-                        f"runtime={runtime}", f"cohost={cohost}"])
+                        f"runtime={runtime}", f"cohost={cohost}", *(sets or [])])
     t0 = time.perf_counter()
     if profile_dir is not None:
         os.environ[PROFILE_DIR_ENV] = str(profile_dir)  # federate processes inherit it
@@ -62,6 +71,10 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
                 del process_busy[n]
             process_busy[f"{spec.name} ({', '.join(sorted(members))})"] = sum(busy[n] for n in members)
     busiest = max(process_busy.values(), default=0.0)
+    # Peak RSS of the federate processes added up: a group's members report their one process's.
+    rss = {name: float(s.get("peak_rss_mb") or 0.0) for name, s in feds.items()}
+    peak_mb = sum(max(rss.get(n, 0.0) for n, _ in spec.members) if spec.members else rss.get(spec.name, 0.0)
+                  for spec in federate_specs(sc))
     return {
         "status": r.status, "reason": r.reason, "loops": loops, "detailed_loops": detailed,
         "runtime": runtime, "sim_s": k.get("sim_time_s"), "wall_s": run_wall, "windows_wall_s": windows_wall,
@@ -72,7 +85,8 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
         "cpu_s": cpu,
         "protocol_share_max": max(0.0, 1.0 - busiest / windows_wall) if windows_wall else None,
         "tasks": k.get("tasks"), "task_success_rate": k.get("task_success_rate"),
-        "ul_packets": k.get("ul_packets"),
+        "tasks_placed": k.get("tasks_placed"), "ul_packets": k.get("ul_packets"),
+        "peak_rss_mb": round(peak_mb, 1), "peak_rss_mb_per_federate": rss,
     }
 
 
@@ -112,27 +126,28 @@ def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[s
              f"{meta['date']}, {meta['cores']} cores, load average {meta['load_start']:.1f} at the start "
              f"and {meta['load_end']:.1f} at the end. Speed = simulated s / wall s. NR cell: "
              f"{meta['netsim_build']}; physics stepper: {meta['stepper']}.", "",
-             "| case | speed | windows/s | window protocol share (upper bound) | busiest federate | tasks, success |",
-             "|---|---:|---:|---:|---|---|"]
+             "| case | speed | windows/s | window protocol share (upper bound) | busiest federate | tasks, success "
+             "| peak RSS, federate processes |",
+             "|---|---:|---:|---:|---|---|---:|"]
     for name, r in runs.items():
         if r["status"] != "completed":
-            lines.append(f"| {name} | {r['status']}: {r['reason']} | | | | |")
+            lines.append(f"| {name} | {r['status']}: {r['reason']} | | | | | |")
             continue
         busiest = max(r["busy_share"].items(), key=lambda kv: kv[1], default=("-", 0.0))
         success = "-" if r["task_success_rate"] is None else f"{r['task_success_rate']:.0%}"
-        lines.append(f"| {name} | {r['speed']:.3f} | {r['windows_per_s']:.0f} | {r['protocol_share_max']:.0%} | "
-                     f"{busiest[0]} {busiest[1]:.0%} | {r['tasks']}, {success} |")
+        lines.append(f"| {name} | {r['speed']:.3g} | {r['windows_per_s']:.3g} | {r['protocol_share_max']:.0%} | "
+                     f"{busiest[0]} {busiest[1]:.0%} | {r['tasks']}, {success} | {r['peak_rss_mb']:.0f} MiB |")
     for case in ("k0", "k1"):
         grouped, alone = runs.get(f"{case} process"), runs.get(f"{case} process, cohost none")
         if grouped and alone and grouped.get("speed") and alone.get("speed"):
-            lines.append(f"| {case}: cohost core / none | {grouped['speed'] / alone['speed']:.3f} (ratio) | | | | |")
+            lines.append(f"| {case}: cohost core / none | {grouped['speed'] / alone['speed']:.3f} (ratio) | | | | | |")
     if "k1 docker" in runs and "k1 process" in runs:
         d, p = runs["k1 docker"], runs["k1 process"]
         if d.get("speed") and p.get("speed"):
-            lines.append(f"| docker / process, K=1 | {d['speed'] / p['speed']:.3f} (ratio) | | | | |")
+            lines.append(f"| docker / process, K=1 | {d['speed'] / p['speed']:.3f} (ratio) | | | | | |")
     if netsim is not None:
         lines.append(f"| netsim standalone, 36 UEs x 8.5 Mbit/s | {netsim['slots_per_second']:.0f} slots/s | "
-                     "| | | |")
+                     "| | | | |")
     lines += ["", "Busy share per federate (processing windows / wall):", ""]
     for name, r in runs.items():
         shares = ", ".join(f"{n} {s:.0%}" for n, s in r["busy_share"].items())
@@ -145,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration-s", type=float, default=30.0, help="simulated seconds per run")
     ap.add_argument("--loops", type=int, default=32)
     ap.add_argument("--docker", action="store_true", help="also the K=1 case in the docker runtime")
+    ap.add_argument("--factory-s", type=float, default=5.0,
+                    help="simulated seconds of the factory case (360 loops, 18 gNBs)")
     ap.add_argument("--only", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
     ap.add_argument("--profile", action="store_true",
@@ -176,11 +193,14 @@ def main(argv: list[str] | None = None) -> int:
                                                        cohost="none")
             if args.docker:
                 runs["k1 docker"] = run_case(args.loops, 1, args.duration_s, "docker", results)
+        if "factory" in only:
+            runs["factory process"] = run_case(360, 0, args.factory_s, "process", results, profile("factory"),
+                                               scenario="factory", sets=FACTORY_SETS)
     netsim = netsim_case(2.0) if "netsim" in only else None
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, runs, netsim)
     if args.profile:
-        for case in ("k0", "k1"):
+        for case in ("k0", "k1", "factory"):
             if (args.out / "profile" / case).is_dir():
                 text += (f"\n## Profile, {case} process (cProfile: speeds above are slowed by it)\n\n"
                          + profile_text(args.out / "profile" / case) + "\n")

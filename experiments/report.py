@@ -24,6 +24,8 @@ from experiments.figures import (
 )
 from experiments.radio_capacity import measure_ul_capacity
 from experiments.records import SweepDir, write_rows
+from experiments.report_layout import TITLES as LAYOUT_TITLES
+from experiments.report_layout import layout_field, layout_figures, layout_lines
 from experiments.spec import SweepSpec
 from experiments.summary import (
     capacity,
@@ -115,6 +117,11 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
         if spec.figures.map_y:
             figures["fig8_map"] = save(map_figure(summary, x, spec.figures.map_y, spec.capacity.group),
                                        sweep_dir / "fig8_map")
+        if (layout := layout_field(spec)) is not None:
+            layout_figs, cap["by_layout"] = layout_figures(spec, sweep_dir, records, summary,
+                                                           series_fields, layout)
+            figures.update(layout_figs)
+            write_json(sweep_dir / "capacity.json", cap)
         if "grouped" in cap:
             figures["fig7_gain"] = save(gain_figure(cap["grouped"], threshold_label(max(spec.capacity.thresholds))),
                                         sweep_dir / "fig7_gain")
@@ -200,6 +207,8 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain} |")
     if "grouped" in cap:
         lines += grouped_lines(cap["grouped"], labels, x)
+    if "by_layout" in cap:
+        lines += layout_lines(cap["by_layout"])
     if cell:
         lines += ["", f"Radio cell uplink capacity: {cell['ul_capacity_mbps']:.1f} Mbit/s ({cell['method']})."]
     lines += ["", "## Figures", ""]
@@ -207,7 +216,7 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
               "fig8_map": "Fig. 8: task success rate map",
               "fig4_success": "Fig. 4: task success rate vs loops",
               "fig5_traffic": "Fig. 5: injected uplink traffic and throughput vs loops",
-              "fig6_latency_cdf": "Fig. 6: uplink IP packet latency CDF"}
+              "fig6_latency_cdf": "Fig. 6: uplink IP packet latency CDF", **LAYOUT_TITLES}
     for stem, files in figures.items():
         png = next(f for f in files if f.endswith(".png"))
         lines += [f"### {titles.get(stem, stem)}", "", f"![{titles.get(stem, stem)}]({png})", ""]

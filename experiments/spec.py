@@ -12,7 +12,7 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -116,6 +116,10 @@ class SweepSpec(SpecModel):
     variants: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="name -> {dotted field: value}: series that differ in "
         "several fields, swept as the grid field `variant`")
+    scale: dict[str, str] = Field(
+        default_factory=dict, description="grid field -> scenario field whose value multiplies it "
+        "in every point, e.g. `loops: hall.inf_layout.gnb_count` sweeps loops per gNB (the grid, "
+        "the capacity and the figures keep the per-gNB value; the run gets the product)")
     seeds: int | list[int] = Field(default=1, description="a count n (seeds 1..n) or a list of seeds")
     repeat_until: RepeatUntil | None = Field(default=None, description="add seeds until enough tasks")
     capacity: CapacitySpec = Field(default_factory=CapacitySpec, description="capacity rule")
@@ -189,6 +193,11 @@ class SweepSpec(SpecModel):
         if self.figures.map_y is not None and self.figures.map_y not in self.grid:
             raise ValueError(f"figures.map_y = {self.figures.map_y!r} is not a grid field; grid fields: "
                              f"{', '.join(self.grid)}")
+        for field, by in self.scale.items():
+            if field not in self.grid or field == VARIANT:
+                raise ValueError(f"scale.{field}: not a grid field; grid fields: {', '.join(self.grid)}")
+            if by == field:
+                raise ValueError(f"scale.{field} = {by!r}: a field cannot scale itself")
         if self.capacity.group == self.capacity.x:
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
@@ -201,10 +210,15 @@ class SweepSpec(SpecModel):
         return {k: (v.values() if isinstance(v, Range) else list(v)) for k, v in self.grid.items()}
 
     def fields(self, values: dict[str, Any]) -> dict[str, Any]:
-        """The scenario fields a grid combination sets: a variant stands for its own fields."""
+        """The scenario fields a grid combination sets: a variant stands for its own fields; a
+        ``scale``d field is multiplied by its factor's value."""
         out: dict[str, Any] = {}
         for k, v in values.items():
             out.update(self.variants[v] if k == VARIANT else {k: v})
+        for field, by in self.scale.items():
+            factor = out.get(by, self.set.get(by))
+            if field in out and factor is not None:  # a lone axis value (validation) stays as given
+                out[field] = out[field] * factor
         return out
 
     def combinations(self) -> list[dict[str, Any]]:
@@ -239,8 +253,10 @@ def field_exists(path: str) -> str | None:
             where = ".".join(parts[:i]) or "the scenario"
             allowed = ", ".join(sorted(fields)) if fields else "(none: not a section)"
             return f"no field {part!r} in {where}; allowed there: {allowed}"
-        ann = fields[part].annotation
-        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+        # A section that may be absent (``X | None``) is a section all the same.
+        kinds = [a for a in (fields[part].annotation, *get_args(fields[part].annotation))
+                 if isinstance(a, type) and issubclass(a, BaseModel)]
+        model = kinds[0] if kinds else None
     return None
 
 
@@ -314,7 +330,8 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
         raise SweepError([("grid", f"{spec.points()} points (grid combinations x seeds), more than this "
                                    f"coordinator runs in one sweep: {max_points[1]} = {max_points[0]}")])
     errors: list[tuple[str, str]] = []
-    sections = [("set", list(spec.set)), ("grid", [p for p in spec.grid if p != VARIANT])]
+    sections = [("set", list(spec.set)), ("grid", [p for p in spec.grid if p != VARIANT]),
+                ("scale", list(spec.scale.values()))]
     sections += [(f"variants.{name}", list(fields)) for name, fields in spec.variants.items()]
     for section, paths in sections:
         for path in paths:
@@ -324,6 +341,11 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
             elif section.startswith("variants.") and (path in spec.set or path in spec.grid):
                 errors.append((f"{section}.{path}", "also in `set` or `grid`: a variant's field is "
                                                     "neither fixed nor swept"))
+    for field, by in spec.scale.items():
+        swept = by in spec.grid or (VARIANT in spec.grid and all(by in f for f in spec.variants.values()))
+        if by not in spec.set and not swept:
+            errors.append((f"scale.{field}", f"{by!r} is neither in `set`, the grid, nor set by every "
+                                             "variant: give the factor of every point"))
     for path, values in spec.grid_values().items():
         if not values:
             errors.append((f"grid.{path}", "no values: give at least one"))
@@ -333,10 +355,14 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
         raise SweepError(errors)
     base = base_path(spec.base, scenarios_dir, allow_paths)
     fixed = overrides(spec.set)
-    for path, values in spec.grid_values().items():  # each value alone, to name the bad one
+    grid = spec.grid_values()
+    for path, values in grid.items():  # each value alone, to name the bad one
         for i, v in enumerate(values):
+            # A value that scales another axis (a layout's gNB count) comes with that axis's
+            # first value: what the base scenario has there is no point of the sweep.
+            alone = {**{f: grid[f][0] for f in spec.scale if f != path}, path: v}
             try:
-                load_scenario(base, [*fixed, *overrides(spec.fields({path: v}))])
+                load_scenario(base, [*fixed, *overrides(spec.fields(alone))])
             except ScenarioError as exc:
                 errors += [(f"grid.{path}[{i}]", f"{v!r}: {f}: {m}") for f, m in exc.errors]
     if not errors:

@@ -494,7 +494,7 @@ class Scenario(Strict):
                     "What is simulated is the same either way")
     duration_s: float = Field(default=10.0, gt=0, le=86400, description="simulated duration, s")
     window_us: int = Field(default=1000, ge=10, description="lookahead window W, us")
-    loops: int = Field(default=2, ge=1, le=128, description="number of control loops N")
+    loops: int = Field(default=2, ge=1, le=1024, description="number of control loops N")
     detailed_loops: int = Field(default=1, ge=0, description="loops simulated in detail K <= N")
     physics_timestep_us: int = Field(default=1000, ge=100, description="MuJoCo timestep, us")
     hall: HallConfig = Field(default_factory=HallConfig, description="hall layout")
