@@ -6,6 +6,9 @@ stands for each of its federates in deaths and logs (``names``); docs/architectu
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,3 +90,25 @@ class Launcher(ABC):
     def stop(self, grace_s: float = 5.0) -> None:
         """Stop every federate (terminate, then kill after ``grace_s``) and release resources.
         Safe to call twice and on every exit path."""
+
+
+def terminate_session(proc: subprocess.Popen[bytes]) -> None:
+    """Ask the session (process group) led by ``proc`` to end: SIGTERM, then SIGCONT, since a
+    stopped (hung) process must wake to die."""
+    for sig in (signal.SIGTERM, signal.SIGCONT):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+
+
+def reap(proc: subprocess.Popen[bytes], timeout_s: float) -> None:
+    """Wait up to ``timeout_s`` for ``proc`` to end, then kill its session and wait for it."""
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()

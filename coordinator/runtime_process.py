@@ -7,14 +7,13 @@ cgroup is made, so ``cpus`` acts through ``cpu`` or ``model`` timing (docs/archi
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
 from collections import deque
 from pathlib import Path
 
-from coordinator.launcher import FederateSpec, Launcher
+from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
 from services.main import PARENT_PID_ENV
 
 
@@ -75,18 +74,7 @@ class ProcessLauncher(Launcher):
             time.sleep(0.02)
         for proc in self.procs.values():
             if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    os.killpg(proc.pid, signal.SIGCONT)  # a stopped (hung) process must wake to die
-                except ProcessLookupError:
-                    pass
+                terminate_session(proc)
         deadline = time.monotonic() + grace_s
         for proc in self.procs.values():
-            try:
-                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                proc.wait()
+            reap(proc, max(0.0, deadline - time.monotonic()))

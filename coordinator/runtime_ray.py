@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.conductor import RunFailed
-from coordinator.launcher import FederateSpec, Launcher
+from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
 from fabric.settings import env_name, settings
 from services.main import PARENT_PID_ENV
 from services.roles import ROLES
@@ -150,19 +149,8 @@ class FederateActor:
         if proc is None:
             return None
         if proc.poll() is None:
-            for sig in (signal.SIGTERM, signal.SIGCONT):
-                try:
-                    os.killpg(proc.pid, sig)
-                except ProcessLookupError:
-                    pass
-            try:
-                proc.wait(timeout=grace_s)
-            except subprocess.TimeoutExpired:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                proc.wait()
+            terminate_session(proc)
+            reap(proc, grace_s)
         return proc.returncode
 
 
