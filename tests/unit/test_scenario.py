@@ -133,7 +133,9 @@ def test_bad_inf_layout_is_refused_naming_the_field(inf_layout: dict, hall: dict
 
 
 def test_no_agvs_unless_asked_and_handover_defaults() -> None:
-    assert all(load_scenario(p).agvs.count == 0 for p in SCENARIOS)
+    # Only the factory drives AGVs among the shipped scenarios.
+    assert {p.stem: load_scenario(p).agvs.count for p in SCENARIOS if load_scenario(p).agvs.count} == {
+        "factory": 4}
     sc = parse_scenario({})
     assert (sc.agvs.count, sc.agvs.speed_m_s, sc.agvs.waypoints_m) == (0, 1.0, None)
     ho = sc.netsim.handover
