@@ -1,8 +1,9 @@
-"""Each work cell's gNB, resolved once before a run starts, with netsim's own numbers: the large
-scale of every (UE, gNB) link drawn from the netsim federate's streams (``InfLinks``) and the
-strongest RSRP (``serving_gnb``), as ``MultiCell`` associates the UEs. Written into the run
-directory (``domain.edges.EDGE_FILE``), where the Edge sides read it: no federate imports
-another.
+"""Each radio's gNB, resolved once before a run starts, with netsim's own numbers: the large
+scale of every (UE, gNB) link drawn from netsim's streams (``InfLinks``) and the strongest RSRP
+(``serving_gnb``), as ``MultiCell`` associates the UEs. Written into the run directory as the
+Edge plan (``domain.edges.EDGE_FILE``), where the Edge sides read it, and for a partitioned run
+as the partition plan (``domain.partitions.PARTITION_FILE``), where every federate that hands
+packets to netsim reads it: no federate imports another.
 """
 
 from __future__ import annotations
@@ -11,23 +12,23 @@ from pathlib import Path
 
 import numpy as np
 
+from domain import partitions
 from domain.edges import EdgePlan, make_plan, single_gnb_plan, write_plan
 from netsim.nr.interference import serving_gnb
 from netsim.nr.large_scale import InfLinks
 from netsim.nr.layout import layout_from_hall
 from scenario.schema import Scenario
-from services.roles import ROLES
 
 
 def serving_gnbs(sc: Scenario) -> dict[str, int]:
     """UE id (``camera-i``, ``robot-i``) -> the layout index of the gNB serving it in a run of
     ``sc`` with ``hall.inf_layout``, as the netsim federate's ``MultiCell`` chooses it: the same
-    UE positions, seed and streams (``<netsim federate>/nr/inf/...``)."""
+    UE positions, seed and streams (``netsim/nr/inf/...``, whatever the partitions)."""
     layout = layout_from_hall(sc.hall)
     if layout is None:
         raise ValueError("hall.inf_layout is not set: the one gNB serves every UE")
     cfg = sc.netsim.nr
-    netsim = ROLES["netsim"].names(sc)[0]
+    netsim = partitions.NETSIM
     positions = sc.ue_positions_m()
     links = InfLinks(layout, np.array(list(positions.values()), dtype=float), cfg.carrier_frequency_hz,
                      sc.seed, f"{netsim}/nr/inf", cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi,
@@ -45,7 +46,12 @@ def resolve_plan(sc: Scenario) -> EdgePlan:
 
 
 def provide_edge_plan(sc: Scenario, run_dir: Path) -> EdgePlan:
-    """Resolve ``sc``'s Edge plan and write it into ``run_dir`` for the federates."""
+    """Resolve ``sc``'s Edge plan and write it into ``run_dir`` for the federates; with
+    ``partitions`` > 1 the partition plan too."""
     plan = resolve_plan(sc)
     write_plan(plan, run_dir)
+    if sc.partitions > 1:
+        layout = layout_from_hall(sc.hall)
+        assert layout is not None  # the scenario refuses partitions without an InF layout
+        partitions.write_plan(partitions.make_plan(sc, serving_gnbs(sc), layout.n_gnb), run_dir)
     return plan

@@ -6,6 +6,7 @@ the streamed tables of completed and failed runs alike.
 
 from __future__ import annotations
 
+import hashlib
 import platform
 import subprocess
 from collections import Counter
@@ -54,6 +55,35 @@ def recorded_summary(merged: dict[str, dict[str, Any]]) -> dict[str, Any]:
     parts = [{"table": table, "federate": fed, **info}
              for table, m in merged.items() for fed, info in sorted(m["parts"].items())]
     return {"rows": {table: m["rows"] for table, m in merged.items()}, "parts": parts}
+
+
+# What the simulated entities did: every task's life, every packet's fate, every transmission and
+# handover. Their rows, sorted, do not depend on which process wrote them.
+OUTCOME_TABLES = ("tasks", "packets", "transmissions", "handovers")
+
+
+def results_hash(run_dir: Path) -> str:
+    """One hash over the merged outcome tables of a run (``OUTCOME_TABLES``), each sorted by all
+    its columns: the same for the same outcomes whatever the processes, partitions or windows
+    that produced them (``trace_hash`` also covers those)."""
+    h = hashlib.sha256()
+    for name in OUTCOME_TABLES:
+        path = run_dir / f"{name}.parquet"
+        table = pq.read_table(path) if path.exists() else TABLES[name].empty_table()
+        table = table.sort_by([(c, "ascending") for c in table.column_names]).combine_chunks()
+        h.update(f"{name}:{table.num_rows};".encode())
+        for column in table.column_names:
+            col = table[column]
+            h.update(column.encode())
+            h.update(np.asarray(pc.is_null(col)).tobytes())
+            if pa.types.is_string(col.type):
+                # Indices into the values in order of appearance: canonical once the rows are.
+                coded = pc.dictionary_encode(col).combine_chunks()
+                h.update("\x00".join(str(v) for v in coded.dictionary.to_pylist()).encode())
+                col = coded.indices
+            filled = pc.fill_null(col, pa.scalar(0, col.type) if not pa.types.is_boolean(col.type) else False)
+            h.update(np.asarray(filled).tobytes())
+    return h.hexdigest()
 
 
 def _pct(values: np.ndarray, q: float) -> float | None:

@@ -23,7 +23,14 @@ from coordinator.conductor import Conductor, Progress, RunFailed
 from coordinator.edges import provide_edge_plan
 from coordinator.launcher import FederateSpec, Launcher, NodeLimits
 from coordinator.provision import FrameModelError, provide_frame_model
-from coordinator.results import compute_kpis, loop_kpis, merge_tables, recorded_summary, versions
+from coordinator.results import (
+    compute_kpis,
+    loop_kpis,
+    merge_tables,
+    recorded_summary,
+    results_hash,
+    versions,
+)
 from coordinator.run_state import RunState
 from fabric import keys
 from fabric.tables import write_json
@@ -57,11 +64,11 @@ def federate_specs(scenario: Scenario) -> list[FederateSpec]:
     federates are the members of the group ``core``."""
     specs = []
     every = federates(scenario)
-    core = tuple((name, r) for name, r in every if ROLES[r].core)
+    core = tuple((name, r) for name, r in every if ROLES[r].in_core(scenario))
     if scenario.cohost == "core":
         specs.append(FederateSpec(name=CORE_GROUP, role="group", members=core))
     for name, r in every:
-        if scenario.cohost == "core" and ROLES[r].core:
+        if scenario.cohost == "core" and ROLES[r].in_core(scenario):
             continue
         node = ROLES[r].node
         p = getattr(scenario.nodes, node) if node else None
@@ -242,6 +249,12 @@ def execute_run(
     summaries = {name: s.summary for name, s in sorted(stopped.items())}
     edge = summaries.get("edge", {})
     trace = conductor.trace_hash(stopped) if conductor is not None and status == RunState.COMPLETED else None
+    outcomes = None
+    if status == RunState.COMPLETED:
+        try:
+            outcomes = results_hash(run_dir)
+        except Exception as exc:
+            kpis["results_hash_error"] = f"{type(exc).__name__}: {exc}"
     kpis.update({
         "run_id": run_id,
         "scenario": scenario.name,
@@ -262,6 +275,8 @@ def execute_run(
         "windows_trace": result_trace,
         "recorded": recorded,
         "trace_hash": trace,
+        # The same whatever the partitions (``trace_hash`` also covers processes and windows).
+        "results_hash": outcomes,
         "results_dir": str(run_dir),
         "federates": summaries,
         # Per node: host score, scale to the reference core, speed during the run, drift flag.

@@ -15,6 +15,7 @@ from typing import Any
 
 from msgspec.structs import replace
 
+from domain.partitions import NETSIM, load_plan, netsim_name
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
@@ -37,18 +38,23 @@ from netsim.radio_cell import (
 from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
 from wire import bodies
-from wire.bodies import QosCtl
+from wire.bodies import QosCtl, SlotTransmissions
 
 log = logging.getLogger(__name__)
 
 # Bounds of a UE's urgency weight in the PF ranking (budgets 8x shorter or longer than the usual).
 MAX_URGENCY = 8.0
+# Packet ids count per gNB, the gNB's index above these bits: a packet gets the same id whatever
+# partition holds its gNB (one gNB: the ids count from 0 as ever).
+GNB_ID_SHIFT = 40
 
 
-def make_cell(federate: Federate) -> RadioCell:
+def make_cell(federate: Federate, own_gnbs: list[int] | None = None) -> RadioCell:
     """The cell model the scenario names, with the UEs of every loop at their hall positions: the
-    NR cells of every gNB of ``hall.inf_layout`` when it is set, else the one gNB's."""
+    NR cells of every gNB of ``hall.inf_layout`` when it is set (or of ``own_gnbs`` only, a
+    partition's), else the one gNB's. Its streams are netsim's whatever federate holds it."""
     sc = federate.scenario
+    prefix = f"{NETSIM}/nr"
     cfg = sc.netsim
     if cfg.model == "simple":
         return SimpleCell(cfg.slot_us, cfg.ul_rate_mbps, cfg.dl_rate_mbps, cfg.loss_probability,
@@ -58,17 +64,17 @@ def make_cell(federate: Federate) -> RadioCell:
         agvs = sc.agvs
         if not agvs.count:
             return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
-                             stream_prefix=f"{federate.name}/nr", record=True)
+                             stream_prefix=prefix, record=True, own_gnbs=own_gnbs)
         traffic = AgvTraffic(agv_ids(agvs.count), agvs.ul_rate_mbps, agvs.dl_rate_mbps,
                              agvs.ul_packet_bytes, agvs.dl_packet_bytes,
                              None if agvs.delay_budget_ms is None
                              else round(agvs.delay_budget_ms * 1000))
         return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
-                         stream_prefix=f"{federate.name}/nr", record=True,
+                         stream_prefix=prefix, record=True,
                          fleet=Fleet(agv_routes(sc)), agv_traffic=traffic,
                          handover=HandoverParams.from_config(cfg.handover))
     return NrCell(cfg.nr, gnb_position_m=sc.hall.gnb_position_m,
-                  ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=f"{federate.name}/nr")
+                  ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=prefix)
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -88,12 +94,25 @@ class NetsimFederate(Federate):
     role = "netsim"
 
     def setup(self) -> None:
-        self.cell = make_cell(self)
+        sc = self.scenario
+        # A partition's cells, and the partitions it exchanges each slot's transmissions with.
+        own: list[int] | None = None
+        self.peers: list[str] = []
+        if sc.partitions > 1:
+            plan = load_plan(sc, self.results_dir)
+            mine = [p for p in range(plan.count) if netsim_name(p) == self.name]
+            if not mine:
+                raise ValueError(f"{self.name} is no netsim partition of {plan.count}")
+            own = plan.own_gnbs(mine[0])
+            self.peers = [netsim_name(p) for p in range(plan.count) if p != mine[0]]
+        self.cell = make_cell(self, own)
+        self.gnb_of = getattr(self.cell, "serving_gnb_index", {})  # UE -> gNB with several
+        self.remote: dict[int, dict[str, list[Any]]] = {}  # slot -> the peers' transmissions
         compiled = native.compiled_loaded()
         log.info("cell model %s: %s", type(self.cell).__name__,
                  f"compiled ({', '.join(compiled)})" if compiled else "pure Python")
         self.slot_us = self.scenario.netsim.slot_us
-        self.next_packet_id = 0
+        self.next_packet_id: Counter[int] = Counter()  # per gNB
         self.slot_scheduled: int | None = None
         self.packets = self.table("packets")
         # Every run has the table, empty with one gNB (the model keeps no transmissions then).
@@ -124,6 +143,8 @@ class NetsimFederate(Federate):
         return now_us if plane == "net" else NEVER_US  # deliveries are its only messages
 
     def external_horizon_us(self) -> int | None:
+        if self.peers and self.cell.has_pending():
+            return self.now  # its next slot sends its transmissions to the other partitions
         # Deliveries are its only messages: while the cell holds none for a federate outside the
         # group (the abstract loops' packets go back to their group), it sends nothing out. Else
         # the earliest slot that may deliver one of those, sent at that slot's start.
@@ -137,7 +158,14 @@ class NetsimFederate(Federate):
         return horizon
 
     def handlers(self) -> Handlers:
-        return {bodies.Packet: self._on_packet, bodies.Packets: self._on_packets, QosCtl: self._lower_layer_qos}
+        return {bodies.Packet: self._on_packet, bodies.Packets: self._on_packets, QosCtl: self._lower_layer_qos,
+                SlotTransmissions: self._on_transmissions}
+
+    def _on_transmissions(self, b: SlotTransmissions, msg: Message) -> None:
+        # From the partitions in name order, which is gNB order: the whole hall's order.
+        into = self.remote.setdefault(b.slot, {"dl": [], "ul": []})
+        into["dl"] += b.dl
+        into["ul"] += b.ul
 
     def _on_packet(self, p: bodies.Packet, msg: Message) -> None:
         # A packet's ref: (destination, application body, payload bytes, index in its message
@@ -163,10 +191,11 @@ class NetsimFederate(Federate):
             self.flow_pdb[p.flow] = pdb
             self.cell.set_flow_qos(p.flow, FlowQos(priority=5 if p.direction == "dl" else 10,
                                                    delay_budget_us=None if pdb is None else int(pdb)))
-        return self.next_packet_id
+        g = self.gnb_of.get(p.ue, 0)
+        return (g << GNB_ID_SHIFT) + self.next_packet_id[g]
 
     def _enqueue_packets(self, packets: list[Packet], p: bodies.Packet | bodies.Packets, t_us: int) -> None:
-        self.next_packet_id += len(packets)
+        self.next_packet_id[self.gnb_of.get(p.ue, 0)] += len(packets)
         refused = self.cell.enqueue_many(packets)
         if refused:
             self._record(refused)
@@ -218,7 +247,22 @@ class NetsimFederate(Federate):
         # the same order as with an item a packet.
         bundles: dict[tuple[str, int], list[bodies.Payload | None]] = {}
         places: dict[tuple[str, int], dict[int, int]] = {}  # per bundle: id(app) -> its item's index
-        outcomes = self.cell.run_slot(self.now)
+        if self.peers:
+            # Decode the last slot against every partition's transmissions of it, then tell the
+            # others this slot's (they decode theirs at the next slot's start).
+            slot = self.now // self.slot_us
+            remote = self.remote.pop(slot - 1, None)
+            for old in [s for s in self.remote if s < slot]:
+                del self.remote[old]
+            assert isinstance(self.cell, MultiCell)
+            outcomes = self.cell.run_slot(self.now, remote)
+            sent_tx = self.cell.slot_transmissions()
+            if sent_tx["dl"] or sent_tx["ul"]:
+                for peer in self.peers:
+                    self.send(peer, self.now + self.slot_us,
+                              SlotTransmissions(slot=slot, dl=sent_tx["dl"], ul=sent_tx["ul"]))
+        else:
+            outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)
         sent = self.cell.transmissions()
         if sent:

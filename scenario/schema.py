@@ -492,6 +492,11 @@ class Scenario(Strict):
                     "node profile) share one process or container and its serving thread, their "
                     "events merged in time order and their messages to each other carried in memory; none: every federate in a process of its own. "
                     "What is simulated is the same either way")
+    partitions: int = Field(
+        default=1, ge=1, description="netsim split by gNB into this many processes, each holding "
+        "the radio cells of a contiguous block of the gNBs and exchanging each slot's "
+        "transmissions with the others (needs hall.inf_layout; at most one a gNB). The same seed "
+        "gives the same results with any number (docs/architecture.md sec. 13)")
     duration_s: float = Field(default=10.0, gt=0, le=86400, description="simulated duration, s")
     window_us: int = Field(default=1000, ge=10, description="lookahead window W, us")
     loops: int = Field(default=2, ge=1, le=1024, description="number of control loops N")
@@ -554,6 +559,25 @@ class Scenario(Strict):
                 raise ValueError(
                     f"agvs.waypoints_m[{i}] = ({x:g}, {y:g}) m lies outside the hall floor "
                     f"(0..{hall.length_m:g} x 0..{hall.width_m:g} m): every waypoint must lie on it")
+        return self
+
+    @model_validator(mode="after")
+    def _partitions_fit(self) -> Scenario:
+        n = self.partitions
+        if n == 1:
+            return self
+        layout = self.hall.inf_layout
+        if layout is None:
+            raise ValueError(f"partitions = {n} splits netsim by gNB: set hall.inf_layout (several "
+                             f"gNBs) or partitions = 1")
+        gnbs = len(layout.gnb_positions_m) if layout.gnb_positions_m is not None else layout.gnb_count
+        if n > gnbs:
+            raise ValueError(f"partitions = {n} is above the {gnbs} gNBs of hall.inf_layout: at "
+                             f"most one partition a gNB (1..{gnbs})")
+        if self.agvs.count:
+            raise ValueError(f"partitions = {n} with agvs.count = {self.agvs.count}: moving radios "
+                             f"hand over between partitions, which is not built; set agvs.count = 0 "
+                             f"or partitions = 1")
         return self
 
     def _cells_in_hall(self) -> None:

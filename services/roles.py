@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from domain.partitions import netsim_names
 from scenario.schema import Scenario
 
 if TYPE_CHECKING:
@@ -23,13 +24,19 @@ class Role:
     process does not load MuJoCo). ``names(scenario)``: the role's federates. ``node``: the
     scenario's compute node profile (``nodes.<node>``) its federates are throttled to, if any.
     ``core``: served in the ``core`` group with ``cohost: core`` (no compute node to emulate,
-    messages every window)."""
+    messages every window), unless ``apart(scenario)``: netsim split into partitions, each a
+    process of its own beside the group."""
 
     name: str
     federate: str
     names: Callable[[Scenario], list[str]]
     node: str | None = None
     core: bool = False
+    apart: Callable[[Scenario], bool] | None = None
+
+    def in_core(self, scenario: Scenario) -> bool:
+        """Whether the role's federates are members of the ``core`` group (with ``cohost: core``)."""
+        return self.core and not (self.apart is not None and self.apart(scenario))
 
     def federate_class(self) -> type[Federate]:
         module, _, cls = self.federate.partition(":")
@@ -64,7 +71,8 @@ def _detailed(prefix: str) -> Callable[[Scenario], list[str]]:
 
 
 register(Role("physics", "services.physics.federate:PhysicsFederate", lambda sc: ["physics"], core=True))
-register(Role("netsim", "netsim.federate:NetsimFederate", lambda sc: ["netsim"], core=True))
+register(Role("netsim", "netsim.federate:NetsimFederate", netsim_names, core=True,
+              apart=lambda sc: sc.partitions > 1))
 register(Role("edge", "services.edge.federate:EdgeFederate", lambda sc: ["edge"], node="edge"))
 register(Role("camera", "services.camera.federate:CameraFederate", _detailed("camera"), node="camera"))
 register(Role("robot", "services.robot.federate:RobotFederate", _detailed("robot"), node="robot"))

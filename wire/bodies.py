@@ -24,6 +24,7 @@ COMMANDS = "command"
 PACKET = "packet"
 PACKETS = "packets"
 QOS_CTL = "qos_ctl"
+SLOT_TX = "slot_tx"
 FRAME = "frame"
 AFRAME = "aframe"
 POSE = "pose"
@@ -225,3 +226,16 @@ class QosCtl(Body):
     ue: str
     pdb_us: int | None
     pdp: float
+
+
+class SlotTransmissions(Body):
+    """The transmissions a netsim partition decided for slot ``slot`` (its index), per link, for
+    the other partitions to decode theirs against (docs/architecture.md sec. 13): each (gNB
+    index, the transmitting radio's hall index in UL or the receiving one's in DL, first PRB,
+    PRBs, mean SNR per PRB before fading, dB)."""
+
+    KIND: ClassVar[str] = SLOT_TX
+    PLANE: ClassVar[str] = NET
+    slot: int
+    dl: list[tuple[int, int, int, int, float]]
+    ul: list[tuple[int, int, int, int, float]]

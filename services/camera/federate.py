@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from domain.codec import encode_frame, slot_after, split_packets
+from domain.partitions import load_route
 from domain.sensor import sense, sensor_for
 from fabric.compute import ComputeNode
 from fabric.federate import Federate, Handlers
@@ -26,6 +27,7 @@ class CameraFederate(Federate):
         self.loop = int(self.name.rsplit("-", 1)[1])
         self.cpu = ComputeNode(self.name, self.scenario.nodes.camera, self.rng("compute"))
         self.record_jobs(self.cpu)
+        self.netsim = load_route(self.scenario, self.results_dir).netsim_of(self.name)
         self.frames = self.table("frames")
         self.frames_kept = 0
         self.bytes_kept = 0
@@ -80,7 +82,7 @@ class CameraFederate(Federate):
         for idx, size in enumerate(sizes):
             chunk = data[offset:offset + size - 40]
             offset += len(chunk)
-            self.send("netsim", enter, Packet(
+            self.send(self.netsim, enter, Packet(
                 ue=self.name, direction="ul", flow=f"{self.name}/video", size=size, dst="edge",
                 pdb_us=self.pdb_us,
                 app=Frame(loop=self.loop, frame_id=fid, capture_us=capture_us, idx=idx, n=len(sizes),

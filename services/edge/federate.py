@@ -13,6 +13,7 @@ from domain.codec import decode_frame, slot_after
 from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
 from domain.edges import load_plan
 from domain.estimator import Detection, make_estimator
+from domain.partitions import load_route
 from domain.policy import Qos
 from domain.tracker import Tracker
 from domain.work_cell import CameraIntrinsics
@@ -31,6 +32,7 @@ class EdgeFederate(Federate):
         sc = self.scenario
         self.cpu = ComputeNode(self.name, sc.nodes.edge, self.rng("compute"))
         self.record_jobs(self.cpu)
+        self.route = load_route(sc, self.results_dir)  # the netsim (partition) of each radio
         k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
         # A learned estimator whose model cannot be loaded falls back to the classical one; the
         # warning is logged and the summary names the estimator that ran and why.
@@ -119,12 +121,12 @@ class EdgeFederate(Federate):
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
         # A central Edge's control message crosses the backhaul to the gNB first.
-        self.send("netsim", *lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy,
-                                             sc.netsim.slot_us))
+        at, ctl = lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy, sc.netsim.slot_us)
+        self.send(self.route.netsim_of(ctl.ue), at, ctl)
 
     def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
         # The Edge's packet enters its gNB after the backhaul (none at a per-gNB Edge).
-        self.send("netsim", slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
+        self.send(self.route.netsim_of(ue), slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, ue, app))
 
     def finish(self, reason: str) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from domain.edges import load_plan
 from domain.frame_model import RUN_FILE, camera_settings, model_for
 from domain.hall import SERVO_LAG_S
 from domain.kinematics import ArmKinematics
+from domain.partitions import load_route
 from domain.policy import Qos
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
@@ -70,6 +71,7 @@ class LoopsFederate(Federate):
         self.frame_model = model_for(camera_settings(sc.camera), self.results_dir / RUN_FILE)
         # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py).
         self.edges = Edges(sc, load_plan(sc, self.results_dir), range(sc.detailed_loops, sc.loops))
+        self.route = load_route(sc, self.results_dir)  # the netsim (partition) of each radio
         nodes = sc.nodes
 
         def modelled(profile: Any) -> Any:
@@ -99,7 +101,7 @@ class LoopsFederate(Federate):
 
     def external_horizon_us(self) -> int | None:
         # It sends only to physics and netsim: nothing leaves a group holding both.
-        return NEVER_US if {"physics", "netsim"} <= self.cohosted else None
+        return NEVER_US if {"physics", *self.route.netsims} <= self.cohosted else None
 
     # ---- messages -----------------------------------------------------------------------------
     def handlers(self) -> Handlers:
@@ -151,7 +153,7 @@ class LoopsFederate(Federate):
         lp.bytes_sent += sum(packets)
         # One message for the frame's packets: they share the flow, the entry slot and the
         # destination, and no payload bytes travel for an abstract loop.
-        self.send("netsim", enter, Packets(
+        self.send(self.route.netsim_of(ue), enter, Packets(
             ue=ue, direction="ul", flow=f"{ue}/video", sizes=packets, dst=self.name, pdb_us=lp.pdb_us,
             app=Aframe(loop=loop, frame_id=fid, n=len(packets)),
         ))
@@ -205,12 +207,12 @@ class LoopsFederate(Federate):
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario
         # A central Edge's control message crosses the backhaul to the gNB first.
-        self.send("netsim", *lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy,
-                                             sc.netsim.slot_us))
+        at, ctl = lower_layer_qos(loop, qos, self.now + self.edges.backhaul_us, sc.policy, sc.netsim.slot_us)
+        self.send(self.route.netsim_of(ctl.ue), at, ctl)
 
     def _downlink(self, ue: str, what: str, size: int, app: Payload) -> None:
         # The Edge's packet enters its gNB after the backhaul (none at a per-gNB Edge).
-        self.send("netsim", slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
+        self.send(self.route.netsim_of(ue), slot_after(self.now + self.edges.backhaul_us, self.scenario.netsim.slot_us),
                   downlink_packet(ue, what, size, self.name, app))
 
     # ---- robot side -----------------------------------------------------------------------------
