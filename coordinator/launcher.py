@@ -34,6 +34,9 @@ class FederateSpec:
     limits: NodeLimits = field(default_factory=NodeLimits)
     # A group's federates (name, role), served together by its process (``fabric.group``).
     members: tuple[tuple[str, str], ...] = ()
+    # CPUs a runtime that places processes on a cluster reserves for a process without a node
+    # profile (``limits``), which nothing throttles: a netsim partition, busy every window.
+    reserve_cpus: float | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -85,6 +88,11 @@ class Launcher(ABC):
     def placement(self) -> dict[str, dict[str, Any]]:
         """Where each federate ran, for ``kpis.json`` (e.g. the Ray node), or {} when on this host."""
         return {}
+
+    def where(self, name: str) -> str:
+        """Where federate ``name`` runs when that is not this host, for a failure's reason: the
+        node and every federate it holds (a lost node takes them all), or ""."""
+        return ""
 
     @abstractmethod
     def stop(self, grace_s: float = 5.0) -> None:

@@ -54,6 +54,9 @@ def free_port() -> int:
 # ``cohost: core`` serves the core roles' federates (``services.roles``) as one group
 # (``fabric.group``) in one process.
 CORE_GROUP = "core"
+# What a runtime placing processes on a cluster (``ray``) reserves for a netsim partition: a
+# process busy every window, one core.
+PARTITION_CPUS = 1.0
 # The longest window given to a participant alone with something to do (the core group, while
 # the detailed loops' federates wait): it meets the conductor at least this often.
 LONG_WINDOW_US = 100_000
@@ -73,7 +76,9 @@ def federate_specs(scenario: Scenario) -> list[FederateSpec]:
         node = ROLES[r].node
         p = getattr(scenario.nodes, node) if node else None
         limits = NodeLimits(cpus=p.cpus, mem_mb=p.mem_mb, timing=p.timing) if p else NodeLimits()
-        specs.append(FederateSpec(name=name, role=r, limits=limits))
+        apart = ROLES[r].apart
+        reserve = PARTITION_CPUS if apart is not None and apart(scenario) else None
+        specs.append(FederateSpec(name=name, role=r, limits=limits, reserve_cpus=reserve))
     return specs
 
 
@@ -189,8 +194,8 @@ def execute_run(
                 name = liveness.lost[0]
                 dead = _death_report(launcher, name)
                 if not dead:
-                    raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)",
-                                    federate=name)
+                    raise RunFailed(f"federate {name} lost its liveliness token (died or disconnected)"
+                                    f"{launcher.where(name)}", federate=name)
             if dead:
                 name = sorted(dead)[0]  # a group sorts before its members, who died with it
                 what = f"{name} (the process of {', '.join(groups[name])})" if name in groups else name

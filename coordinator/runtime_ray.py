@@ -55,7 +55,8 @@ def import_ray() -> Any:
 
 def bundle_cpus(cpus: float | None) -> float | None:
     """A node profile's ``cpus`` rounded up to what Ray accepts; None for a process without a
-    node profile (the core group, physics, netsim, the abstract loops), which reserves none."""
+    node profile (the core group, physics, netsim, the abstract loops), which reserves none
+    unless it is a netsim partition (``FederateSpec.reserve_cpus``)."""
     if cpus is None:
         return None
     return math.ceil(round(cpus / RAY_CPU_STEP, 6)) * RAY_CPU_STEP
@@ -63,7 +64,18 @@ def bundle_cpus(cpus: float | None) -> float | None:
 
 def _what(spec: FederateSpec) -> str:
     node = ROLES[spec.role].node if spec.role in ROLES else None
-    return f"{spec.name} (nodes.{node}.cpus = {spec.limits.cpus:g})" if node else spec.name
+    if node:
+        return f"{spec.name} (nodes.{node}.cpus = {spec.limits.cpus:g})"
+    if spec.reserve_cpus is not None:
+        return f"{spec.name} (a netsim partition, {spec.reserve_cpus:g} CPU)"
+    return spec.name
+
+
+def reserved_cpus(spec: FederateSpec) -> float | None:
+    """What ``spec``'s process reserves: its node profile's CPUs, a partition's core, or None."""
+    if spec.limits.cpus is not None:
+        return bundle_cpus(spec.limits.cpus)
+    return bundle_cpus(spec.reserve_cpus)
 
 
 def check_placement(asked: dict[str, float], node_cpus: dict[str, float], available_cpus: float,
@@ -176,7 +188,7 @@ class _Session:
                     ray.init(address=address, **kwargs) if address else ray.init(**kwargs)
                 except Exception as exc:
                     where = f"join the Ray cluster at {address}" if address else "start a local Ray cluster"
-                    raise RayRuntimeError(f"runtime ray: cannot {where}: {_short(exc)}") from None
+                    raise RayRuntimeError(f"runtime ray: cannot {where}: {short_error(exc)}") from None
                 self.owned, self.local = True, not address
             self.users += 1
             return self.owned and self.local
@@ -256,7 +268,7 @@ class RayLauncher(Launcher):
             raise RayRuntimeError(f"this launcher already reserved for {', '.join(self._reserved_for or ())}")
         from ray.util.placement_group import placement_group, remove_placement_group
 
-        asked = {s.name: c for s in specs if (c := bundle_cpus(s.limits.cpus)) is not None}
+        asked = {s.name: c for s in specs if (c := reserved_cpus(s)) is not None}
         node_cpus = {str(n["NodeID"]): float(n["Resources"].get("CPU", 0.0))
                      for n in self.ray.nodes() if n.get("Alive")}
         available = float(self.ray.available_resources().get("CPU", 0.0))
@@ -333,7 +345,7 @@ class RayLauncher(Launcher):
             try:
                 where = self.ray.get(ref, timeout=max(0.1, deadline - time.monotonic()))
             except Exception as exc:
-                raise RunFailed(f"federate {name} could not start as a Ray actor: {_short(exc)}",
+                raise RunFailed(f"federate {name} could not start as a Ray actor: {short_error(exc)}",
                                 federate=name) from None
             # The address the node has in the cluster (what the actor's host would guess may differ).
             where["node_ip"] = addresses.get(where["node_id"], where["node_ip"])
@@ -352,8 +364,8 @@ class RayLauncher(Launcher):
             try:
                 code = self.ray.get(ref)
             except Exception as exc:
-                self._dead.setdefault(name, f"lost its Ray actor{self._on(name)} (the actor's process was "
-                                      f"killed, or its node lost): {_short(exc)}")
+                self._dead.setdefault(name, f"lost its Ray actor{self.where(name)} (the actor's process was "
+                                      f"killed, or its node lost): {short_error(exc)}")
                 continue
             if code is not None:
                 how = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
@@ -362,6 +374,14 @@ class RayLauncher(Launcher):
     def _on(self, name: str) -> str:
         where = self._where.get(name)
         return f" on Ray node {where['node_ip']} ({where['node_id'][:12]})" if where else ""
+
+    def where(self, name: str) -> str:
+        host = self._hosted.get(name, name)
+        at = self._where.get(host)
+        if at is None:
+            return ""
+        held = sorted(n for n, h in self._hosted.items() if self._where.get(h, {}).get("node_id") == at["node_id"])
+        return f"{self._on(host)}, which held {', '.join(held)}"
 
     def _poll(self) -> None:
         """Ask every live actor how its child is, at most every ``poll_interval_s``, never waiting."""
@@ -435,6 +455,7 @@ class RayLauncher(Launcher):
             _SESSION.release(self.ray)
 
 
-def _short(exc: BaseException, limit: int = 300) -> str:
+def short_error(exc: BaseException, limit: int = 300) -> str:
+    """An exception as one line of at most ``limit`` characters of its text, with its type."""
     text = " ".join(str(exc).split())
     return f"{type(exc).__name__}: {text[:limit]}{'...' if len(text) > limit else ''}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import shutil
 import tarfile
 import tempfile
@@ -19,7 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
+from coordinator.runtime_ray import short_error
 from experiments.point_runs import PointOutcome, PointTask, run_process
+
+log = logging.getLogger(__name__)
 
 
 def run_remote(config_yaml: str, run_id: str) -> dict[str, Any]:
@@ -81,30 +85,49 @@ class RayExecutor:
             remote = ray.remote(num_cpus=self.cpus_per_point, max_retries=0)(run_remote)
             queue = list(tasks)
             pending: dict[Any, tuple[PointTask, float]] = {}
+            requeued: set[str] = set()  # points given back to the queue after a lost worker or node
+            lost = (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError)
             while (queue or pending) and not cancel.is_set():
                 while queue and len(pending) < limit:
                     task = queue.pop(0)
-                    on_start(task)
+                    if task.run_id not in requeued:
+                        on_start(task)
                     ref = remote.remote(task.config_path.read_text(), task.run_id)
                     pending[ref] = (task, time.monotonic())
                 ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
                 for ref in ready:
                     task, t0 = pending.pop(ref)
-                    on_done(task, self._outcome(ray, ref, task, t0))
+                    try:
+                        res = ray.get(ref)
+                    except lost as exc:
+                        # The cluster failed, not the point: run it again, once, wherever Ray
+                        # places it now; a second loss fails it.
+                        if task.run_id not in requeued:
+                            requeued.add(task.run_id)
+                            log.warning("point %s: %s; back to the queue once", task.run_id, short_error(exc))
+                            queue.insert(0, task)
+                            continue
+                        on_done(task, self._failed(task, t0, f"ray task lost twice: {short_error(exc)}"))
+                        continue
+                    except Exception as exc:  # the point's own failure: the sweep goes on
+                        on_done(task, self._failed(task, t0, f"ray task failed: {exc}"))
+                        continue
+                    on_done(task, self._outcome(res, task))
             for ref in pending:  # cancelled: the points in flight are rerun on resume
                 ray.cancel(ref, force=True)
 
     @staticmethod
-    def _outcome(ray: Any, ref: Any, task: PointTask, t0: float) -> PointOutcome:
+    def _failed(task: PointTask, t0: float, reason: str) -> PointOutcome:
+        return PointOutcome(task.point.key, task.run_id, RunState.FAILED, reason[:2000],
+                            task.runs_dir / task.run_id, time.monotonic() - t0)
+
+    @staticmethod
+    def _outcome(res: dict[str, Any], task: PointTask) -> PointOutcome:
         run_dir = task.runs_dir / task.run_id
-        try:
-            res = ray.get(ref)
-        except Exception as exc:  # the worker or its node died: the point failed, the sweep goes on
-            return PointOutcome(task.point.key, task.run_id, RunState.FAILED, f"ray task failed: {exc}"[:2000],
-                                run_dir, time.monotonic() - t0)
         task.runs_dir.mkdir(parents=True, exist_ok=True)
         with tarfile.open(fileobj=io.BytesIO(res["archive"]), mode="r:gz") as tar:
             tar.extractall(task.runs_dir, filter="data")
         # The run directory recorded the worker's path; point it at where the sweep keeps it.
         kpis = {**res["kpis"], "results_dir": str(run_dir)} if res["kpis"] else {}
         return PointOutcome(task.point.key, task.run_id, res["status"], res["reason"], run_dir, res["wall_s"], kpis)
+

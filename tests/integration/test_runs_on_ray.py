@@ -1,5 +1,6 @@
 """The ray runtime on a local Ray cluster (a head and a worker node on this machine): the same trace
-hash as the process runtime, and a federate whose actor dies fails the run naming it and leaves
+hash as the process runtime, also for a run split into netsim partitions spread over both nodes;
+a federate whose actor dies, or a node lost with its raylet, fails the run naming it and leaves
 no actor, placement group or federate process behind."""
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from scenario.schema import load_scenario
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).parents[2]
 SMOKE = ROOT / "configs" / "scenarios" / "smoke.yaml"
+FACTORY_SMALL = ROOT / "configs" / "scenarios" / "factory_small.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +122,62 @@ def test_a_run_the_cluster_cannot_hold_is_refused_before_it_starts(
     assert code == 2 and "ask 5.5 CPUs" in err and "1.5 CPUs missing" in err
     assert list(tmp_path.iterdir()) == [], "no run directory, no federate started"
     assert [pg for pg in on_cluster.util.placement_group_table().values() if pg["state"] != "REMOVED"] == []
+
+
+def test_a_partitioned_run_spreads_over_the_nodes_with_the_process_runtimes_results(
+        tmp_path: Path, on_cluster: Any) -> None:
+    sets = ["duration_s=1", "partitions=2", *MODEL_TIMING_SETS]
+    local = execute_run(load_scenario(FACTORY_SMALL, sets), tmp_path / "process")
+    assert local.status == "completed", local.reason
+    on_ray = execute_run(load_scenario(FACTORY_SMALL, [*sets, "runtime=ray"]), tmp_path / "ray")
+    assert on_ray.status == "completed", on_ray.reason
+    assert on_ray.kpis["trace_hash"] == local.kpis["trace_hash"]
+    assert on_ray.kpis["results_hash"] == local.kpis["results_hash"]
+    placement = on_ray.kpis["placement"]
+    assert placement["netsim-00"]["cpus_reserved"] == placement["netsim-01"]["cpus_reserved"] == 1.0
+    assert len({placement[n]["node_id"] for n in ("edge", "netsim-00", "netsim-01")}) == 2, "SPREAD"
+    assert wait_for_nothing_left(on_cluster, on_ray.run_id) == {"actors": [], "placement_groups": [],
+                                                                "processes": []}
+
+
+def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ray = pytest.importorskip("ray")
+    from coordinator.runtime_ray import RayLauncher
+
+    monkeypatch.setenv("COSIM5G_RAY_PLACEMENT", "SPREAD")
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    # A cluster of its own: the node lost here does not come back.
+    with local_ray_cluster(free_port(), 2) as address:
+        ray.init(address=address, log_to_driver=False)
+        try:
+            head = ray.get_runtime_context().get_node_id()
+            sc = load_scenario(FACTORY_SMALL, ["duration_s=60", "partitions=2", *MODEL_TIMING_SETS, "runtime=ray"])
+            launcher = RayLauncher()
+            struck: dict[str, Any] = {}
+
+            def on_progress(p: Progress) -> None:
+                if p.t_us > 300_000 and not struck:
+                    victim = next(n for n, w in launcher.placement().items() if w["node_id"] != head)
+                    node = launcher.placement()[victim]["node_id"]
+                    raylets = [pid for pid in processes_with(f"--node_id={node}")
+                               if "raylet" in Path(f"/proc/{pid}/cmdline").read_text()]
+                    for pid in raylets:
+                        os.kill(pid, signal.SIGKILL)
+                    struck.update(at=time.monotonic(), node=node, victim=victim, raylets=raylets)
+
+            result = execute_run(sc, tmp_path, launcher=launcher, on_progress=on_progress)
+            ended = time.monotonic()
+            assert struck and struck["raylets"], "the run ended before the node was lost"
+            assert result.status == "failed", result.reason
+            reason = result.reason or ""
+            assert struck["node"][:12] in reason and "which held" in reason, reason
+            held = [n for n, w in (result.kpis.get("placement") or {}).items() if w["node_id"] == struck["node"]]
+            assert held and all(n in reason for n in held), reason
+            assert ended - struck["at"] < 10.0, "a lost node fails the run within 10 s"
+            # What was streamed before the loss is kept: the run's tables hold it.
+            assert result.kpis["recorded"]["rows"]["packets"] > 0
+            left = wait_for_nothing_left(ray, result.run_id)
+            assert left["processes"] == [] and left["placement_groups"] == [], left
+        finally:
+            ray.shutdown()

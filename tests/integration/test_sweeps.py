@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -123,3 +124,35 @@ def test_ray_executor_gives_the_same_kpis_as_the_local_one(tmp_path: Path, ray_c
     ray_dir = only_dir(tmp_path / "ray")
     for rec in (json.loads(line) for line in (ray_dir / "points.jsonl").read_text().splitlines()):
         assert (ray_dir / rec["run_dir"] / "packets.parquet").is_file(), "the run directory came back"
+
+
+def test_a_point_whose_ray_node_is_lost_goes_back_to_the_queue_once(tmp_path: Path) -> None:
+    ray = pytest.importorskip("ray")
+    spec = write_spec(tmp_path / "two.yaml", "two", [1, 2])
+    results = tmp_path / "sweeps"
+    # A cluster of its own: the node lost here does not come back.
+    with local_ray_cluster(free_port(), 1) as address:
+        ray.init(address=address, log_to_driver=False)
+        try:
+            [worker] = [n["NodeID"] for n in ray.nodes() if "node:__internal_head__" not in n["Resources"]]
+        finally:
+            ray.shutdown()
+        proc = subprocess.Popen([sys.executable, "-m", "interfaces.cli", "sweep", str(spec), "--executor", "ray",
+                                 "--address", address, "--results", str(results), "--quiet"], cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        # Both points running (one a node, one CPU each): the worker node's raylet dies.
+        deadline = time.monotonic() + 300
+        while len(processes_with("cosim5g-point-")) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, "the points did not both start"
+            time.sleep(0.2)
+        time.sleep(2.0)
+        raylets = [pid for pid in processes_with(f"--node_id={worker}")
+                   if "raylet" in Path(f"/proc/{pid}/cmdline").read_text()]
+        assert raylets
+        for pid in raylets:
+            os.kill(pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    assert "back to the queue once" in err, err
+    rows = pq.read_table(only_dir(results) / "points.parquet").to_pylist()
+    assert sorted((r["loops"], r["status"]) for r in rows) == [(1, "completed"), (2, "completed")]
