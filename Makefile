@@ -19,7 +19,7 @@ PLATFORM_UID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || echo $$u)
 PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
-.PHONY: help setup install run smoke test test-unit test-integration lint bench load bench-docker images up down \
+.PHONY: help setup install run smoke test test-unit test-integration lint bench bench-cluster load bench-docker images up down \
 	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity reproduce-factory soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
@@ -72,6 +72,9 @@ test-integration: $(BIN)/cosim5g native ## runs over real zenoh and real process
 bench: $(BIN)/cosim5g native ## benchmarks: conductor windows/s, smoke real-time factor, speed of 32-loop runs, of the 360-loop 18-gNB factory (5 s: the first tasks end) and of netsim (results/bench/)
 	$(BIN)/python -m benchmarks.platform_bench
 	$(BIN)/python -m benchmarks.speed
+
+bench-cluster: $(BIN)/cosim5g native ## the factory in 1, 2 and 4 netsim partitions, in processes and on 1, 2 and 4 local Ray nodes where the cores allow: speed, scaling efficiency, window protocol share (results/bench/cluster.md)
+	$(BIN)/python -m benchmarks.cluster
 
 soak: $(BIN)/cosim5g native ## 100 smoke runs in one coordinator + 20 in containers (RUNS, DOCKER_RUNS): leftovers, RSS, fds (results/bench/)
 	$(BIN)/python -m benchmarks.reliability soak --runs $(or $(RUNS),100) --docker-runs $(or $(DOCKER_RUNS),20)

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from coordinator.launcher import Launcher
 from coordinator.run import execute_run, federate_specs
 from fabric.heap import simulation_heap
 from fabric.native import compiled_loaded, library
@@ -40,10 +41,10 @@ FACTORY_SETS = ["nodes.camera.timing=model", "nodes.edge.timing=model", "nodes.r
 
 def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results: Path,
              profile_dir: Path | None = None, cohost: str = "core", scenario: str = "baseline",
-             sets: list[str] | None = None) -> dict[str, Any]:
+             sets: list[str] | None = None, launcher: Launcher | None = None) -> dict[str, Any]:
     """One run of ``scenario`` (the baseline, policy none) at ``loops`` / ``detailed``; its
     speed, where the wall time went and its processes' peak memory. With ``profile_dir`` its
-    federates write their cProfile there."""
+    federates write their cProfile there; ``launcher``: the runtime's, made by the caller."""
     sc = load_scenario(ROOT / "configs" / "scenarios" / f"{scenario}.yaml",
                        [f"loops={loops}", f"detailed_loops={detailed}", f"duration_s={duration_s}",
                         f"runtime={runtime}", f"cohost={cohost}", *(sets or [])])
@@ -51,7 +52,7 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
     if profile_dir is not None:
         os.environ[PROFILE_DIR_ENV] = str(profile_dir)  # federate processes inherit it
     try:
-        r = execute_run(sc, results)
+        r = execute_run(sc, results, launcher=launcher)
     finally:
         os.environ.pop(PROFILE_DIR_ENV, None)
     wall = time.perf_counter() - t0
@@ -87,6 +88,7 @@ def run_case(loops: int, detailed: int, duration_s: float, runtime: str, results
         "tasks": k.get("tasks"), "task_success_rate": k.get("task_success_rate"),
         "tasks_placed": k.get("tasks_placed"), "ul_packets": k.get("ul_packets"),
         "peak_rss_mb": round(peak_mb, 1), "peak_rss_mb_per_federate": rss,
+        "results_hash": k.get("results_hash"),
     }
 
 
@@ -141,6 +143,10 @@ def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[s
         grouped, alone = runs.get(f"{case} process"), runs.get(f"{case} process, cohost none")
         if grouped and alone and grouped.get("speed") and alone.get("speed"):
             lines.append(f"| {case}: cohost core / none | {grouped['speed'] / alone['speed']:.3f} (ratio) | | | | | |")
+    one, two = runs.get("factory process, no AGVs, 1 partition"), runs.get("factory process, no AGVs, 2 partitions")
+    if one and two and one.get("speed") and two.get("speed"):
+        same = "same results" if one.get("results_hash") == two.get("results_hash") else "RESULTS DIFFER"
+        lines.append(f"| factory: 2 partitions / 1 | {two['speed'] / one['speed']:.3f} (ratio, {same}) | | | | | |")
     if "k1 docker" in runs and "k1 process" in runs:
         d, p = runs["k1 docker"], runs["k1 process"]
         if d.get("speed") and p.get("speed"):
@@ -196,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
         if "factory" in only:
             runs["factory process"] = run_case(360, 0, args.factory_s, "process", results, profile("factory"),
                                                scenario="factory", sets=FACTORY_SETS)
+            # netsim in 1 and 2 partitions (a partitioned run refuses AGVs: both without them).
+            for n in (1, 2):
+                runs[f"factory process, no AGVs, {n} partition{'s' if n > 1 else ''}"] = run_case(
+                    360, 0, args.factory_s, "process", results, scenario="factory",
+                    sets=[*FACTORY_SETS, "agvs.count=0", f"partitions={n}"])
     netsim = netsim_case(2.0) if "netsim" in only else None
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, runs, netsim)
