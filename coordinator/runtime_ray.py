@@ -9,12 +9,16 @@ its child. Why a supervised subprocess, what the cluster's nodes need: docs/arch
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
+import shutil
 import socket
 import subprocess
 import sys
+import tarfile
+import tempfile
 import threading
 import time
 from collections import deque
@@ -123,15 +127,28 @@ class FederateActor:
     def __init__(self) -> None:
         self.proc: subprocess.Popen[bytes] | None = None
         self.log_path: Path | None = None
+        self.local_dir: Path | None = None  # where it writes when the run directory is not shared
+        self.inputs: set[str] = set()
 
-    def start(self, argv: list[str], env: dict[str, str], cwd: str, run_dir: str, log_path: str) -> dict[str, Any]:
+    def start(self, argv: list[str], env: dict[str, str], cwd: str, run_dir: str, log_path: str,
+              inputs: bytes, ship: bool) -> dict[str, Any]:
+        """Start the federate. Where the node sees ``run_dir`` (shared) and ``ship`` is off, it
+        writes there; else into a folder of this node holding the run directory's ``inputs``
+        (a tar of what the coordinator wrote there before the start), whose records ``stop``
+        ships back."""
         import ray
 
         node_id = ray.get_runtime_context().get_node_id()
-        if not Path(run_dir).is_dir():
-            raise RuntimeError(
-                f"the run directory {run_dir} is not on Ray node {socket.gethostname()} ({node_id[:12]}): "
-                "runtime ray needs it shared at the same path on every node")
+        if ship or not Path(run_dir).is_dir():
+            self.local_dir = Path(tempfile.mkdtemp(prefix="cosim5g-run-"))
+            with tarfile.open(fileobj=io.BytesIO(inputs), mode="r") as tar:
+                tar.extractall(self.local_dir, filter="data")
+            self.inputs = set(_files(self.local_dir))
+            argv = [str(self.local_dir) if a == run_dir else
+                    str(self.local_dir / Path(a).relative_to(run_dir)) if a.startswith(run_dir + "/") else a
+                    for a in argv]
+            log_path = str(self.local_dir / Path(log_path).relative_to(run_dir))
+            run_dir = str(self.local_dir)
         full = dict(os.environ)
         full.update(env)
         full.setdefault("MUJOCO_GL", "egl")
@@ -143,7 +160,7 @@ class FederateActor:
                 [sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 env=full, cwd=cwd if Path(cwd).is_dir() else run_dir, start_new_session=True)
         return {"node_id": node_id, "node_ip": ray.util.get_node_ip_address(), "hostname": socket.gethostname(),
-                "actor_pid": os.getpid(), "pid": self.proc.pid}
+                "actor_pid": os.getpid(), "pid": self.proc.pid, "records": "shipped" if self.local_dir else "shared"}
 
     def poll(self) -> int | None:
         """The child's exit code (negative: killed by that signal), None while it runs."""
@@ -155,15 +172,40 @@ class FederateActor:
         with open(self.log_path, errors="replace") as f:
             return [line.rstrip("\n") for line in deque(f, maxlen=n)]
 
-    def stop(self, grace_s: float) -> int | None:
-        """Terminate the child's session (a stopped child is woken to die), kill it after ``grace_s``."""
+    def stop(self, grace_s: float) -> tuple[int | None, bytes | None]:
+        """Terminate the child's session (a stopped child is woken to die), kill it after
+        ``grace_s``; its exit code and, where it wrote into a folder of this node, a tar of what
+        it wrote there (the folder is removed)."""
         proc = self.proc
-        if proc is None:
-            return None
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             terminate_session(proc)
             reap(proc, grace_s)
-        return proc.returncode
+        code = None if proc is None else proc.returncode
+        if self.local_dir is None:
+            return code, None
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+            for rel in sorted(set(_files(self.local_dir)) - self.inputs):
+                tar.add(self.local_dir / rel, arcname=rel)
+        shutil.rmtree(self.local_dir, ignore_errors=True)
+        self.local_dir = None
+        return code, buf.getvalue()
+
+
+def _files(root: Path) -> list[str]:
+    """Every file under ``root``, as paths relative to it."""
+    return [str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()]
+
+
+def pack_inputs(run_dir: Path) -> bytes:
+    """What the coordinator wrote into ``run_dir`` before the federates start (scenario, plans,
+    frame model): the inputs of a federate writing into a folder of its own node."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for rel in sorted(_files(run_dir)):
+            if not rel.startswith(("logs/", "tables/")):
+                tar.add(run_dir / rel, arcname=rel)
+    return buf.getvalue()
 
 
 class _Session:
@@ -223,6 +265,8 @@ class RayLauncher(Launcher):
         if self.strategy not in STRATEGIES:
             raise RayRuntimeError(f"ray placement strategy {self.strategy!r}: expected one of {', '.join(STRATEGIES)}")
         self.placement_timeout_s = placement_timeout_s or given.ray_placement_timeout_s
+        self.ship = given.ray_records == "ship"
+        self._run_dir: Path | None = None
         self.poll_interval_s = poll_interval_s
         self.local = _SESSION.acquire(self.ray, self.address)
         self._session = True
@@ -318,6 +362,8 @@ class RayLauncher(Launcher):
         run_dir = Path(run_dir).absolute()
         (run_dir / "logs").mkdir(parents=True, exist_ok=True)
         env = self._env()
+        self._run_dir = run_dir
+        inputs = pack_inputs(run_dir)  # for the nodes that do not see the run directory
         remote = self.ray.remote(FederateActor)
         starts: dict[str, Any] = {}
         for spec in specs:
@@ -338,7 +384,8 @@ class RayLauncher(Launcher):
                                    name=f"cosim5g/{run_id}/{spec.name}").remote()
             self._actors[spec.name] = actor
             argv = spec.argv(run_id, endpoint, str(Path(scenario_path).absolute()), str(run_dir))
-            starts[spec.name] = actor.start.remote(argv, env, os.getcwd(), str(run_dir), str(log_path))
+            starts[spec.name] = actor.start.remote(argv, env, os.getcwd(), str(run_dir), str(log_path),
+                                                   inputs, self.ship)
         addresses = {str(n["NodeID"]): str(n["NodeManagerAddress"]) for n in self.ray.nodes()}
         deadline = time.monotonic() + ACTOR_START_TIMEOUT_S
         for name, ref in starts.items():
@@ -440,7 +487,15 @@ class RayLauncher(Launcher):
             time.sleep(0.02)
         stops = [actor.stop.remote(grace_s) for name, actor in self._actors.items()]
         if stops:
-            ray.wait(stops, num_returns=len(stops), timeout=grace_s + 5.0)
+            ready, _ = ray.wait(stops, num_returns=len(stops), timeout=grace_s + 5.0)
+            for ref in ready:
+                try:
+                    _, records = ray.get(ref)
+                except Exception:  # a dead actor: what its node wrote is lost with it
+                    continue
+                if records and self._run_dir is not None:  # written on a node of its own
+                    with tarfile.open(fileobj=io.BytesIO(records), mode="r:gz") as tar:
+                        tar.extractall(self._run_dir, filter="data")
         for actor in self._actors.values():
             ray.kill(actor, no_restart=True)
         if self._pg is not None:

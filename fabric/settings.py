@@ -64,6 +64,10 @@ class Settings(BaseSettings):
         default="PACK", description="the Ray placement strategy of a run's federate processes")
     ray_placement_timeout_s: float = Field(default=30.0, gt=0, allow_inf_nan=False,
                                            description="longest wait for Ray to place a run's federates, s")
+    ray_records: Literal["auto", "ship"] = Field(
+        default="auto", description="where a Ray node's federates write: auto, into the run directory "
+        "where the node sees it (shared), else into a folder of the node, shipped back through Ray's "
+        "object store when the run stops; ship: always the latter")
 
 
 def settings(**given: Any) -> Settings:

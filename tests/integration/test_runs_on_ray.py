@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -181,3 +182,23 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
             assert left["processes"] == [] and left["placement_groups"] == [], left
         finally:
             ray.shutdown()
+
+
+def test_records_written_on_the_nodes_come_back_through_ray(
+        tmp_path: Path, on_cluster: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    # As on nodes that do not see the run directory: each federate writes into a folder of its
+    # node, shipped back when the run stops; the run's results are those of the process runtime.
+    monkeypatch.setenv("COSIM5G_RAY_RECORDS", "ship")
+    sets = ["duration_s=1.5", *MODEL_TIMING_SETS]
+    local = execute_run(load_scenario(SMOKE, sets), tmp_path / "process")
+    shipped = execute_run(load_scenario(SMOKE, [*sets, "runtime=ray"]), tmp_path / "ray")
+    assert shipped.status == "completed", shipped.reason
+    assert {w["records"] for w in shipped.kpis["placement"].values()} == {"shipped"}
+    assert shipped.kpis["trace_hash"] == local.kpis["trace_hash"]
+    assert shipped.kpis["results_hash"] == local.kpis["results_hash"]
+    assert shipped.kpis["recorded"]["rows"] == local.kpis["recorded"]["rows"]
+    logs = shipped.run_dir / "logs"
+    assert "netsim.federate" in (logs / "core.log").read_text(), "the logs came back too"
+    assert not list(Path(tempfile.gettempdir()).glob("cosim5g-run-*")), "the nodes' folders are removed"
+    assert wait_for_nothing_left(on_cluster, shipped.run_id) == {"actors": [], "placement_groups": [],
+                                                                 "processes": []}
