@@ -20,6 +20,9 @@ import json
 import math
 import sys
 import time
+from collections import Counter
+from itertools import repeat
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -156,6 +159,7 @@ def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps:
     sizes = [packet_bytes] * (frame_bytes // packet_bytes)
     if frame_bytes % packet_bytes:
         sizes.append(frame_bytes % packet_bytes)
+    n_sizes = len(sizes)
     period_us = 1e6 / frame_rate
     if delay_budget_us is not None:
         for ue in ue_ids:
@@ -175,17 +179,23 @@ def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps:
     lost = {LOSS_BUFFER: 0, LOSS_DELAY_BUDGET: 0, LOSS_CHANNEL: 0}
     cell_s = 0.0  # inside enqueue (with packet creation) and run_slot
     run_slot_s = 0.0  # inside run_slot only
+    refused_causes: Counter[str | None] = Counter()
+    cause_of = attrgetter("cause")
     wall0 = time.perf_counter()
     for s in range(n_slots):
         t = s * slot_us
         c0 = time.perf_counter()
-        refused = []
         while frames and frames[0][0] <= t:
             enq, i, k, phase = heapq.heappop(frames)
             ue = ue_ids[i]
-            refused += cell.enqueue_many([Packet(packet_id + k, ue, ue, "ul", size, enq)
-                                          for k, size in enumerate(sizes, 1)])
-            packet_id += len(sizes)
+            # The frame's packets, ids packet_id + 1 on (map: no bytecode per packet).
+            refused = cell.enqueue_many(list(map(
+                Packet, range(packet_id + 1, packet_id + n_sizes + 1), repeat(ue, n_sizes),
+                repeat(ue, n_sizes), repeat("ul", n_sizes), sizes, repeat(enq, n_sizes))))
+            if refused and enq >= warmup_us:
+                # Those refused are the frame's (enqueued at enq): counted by cause in C.
+                refused_causes.update(map(cause_of, refused))
+            packet_id += n_sizes
             capture = phase + int((k + 1) * period_us)
             heapq.heappush(frames, (-(-capture // slot_us) * slot_us, i, k + 1, phase))
         c1 = time.perf_counter()
@@ -193,9 +203,6 @@ def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps:
         c2 = time.perf_counter()
         cell_s += c2 - c0
         run_slot_s += c2 - c1
-        for o in refused:
-            if o.packet.enqueue_us >= warmup_us:
-                lost[o.cause or LOSS_CHANNEL] += 1
         for o in outcomes:
             p = o.packet
             if o.deliver_us is not None:
@@ -206,6 +213,8 @@ def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps:
             elif p.enqueue_us >= warmup_us:
                 lost[o.cause or LOSS_CHANNEL] += 1
     wall_s = time.perf_counter() - wall0
+    for cause, count in refused_causes.items():
+        lost[cause or LOSS_CHANNEL] += count
     # Packets enqueued after the warm-up, whatever became of them.
     sent_in_window = sum(
         len(sizes) * _frames_between(phase, period_us, slot_us, warmup_us, end_us)

@@ -210,6 +210,9 @@ class InterferenceCsi(Csi):
         self._pc_over_ipn: list[float] = []
         self._full_over_ipn: list[float] = []
         self._dl_over_ipn: list[float] = []
+        # The UL wideband MCS and power caps ``prepare_uplink`` computed with other cells', for
+        # the next ``update_wideband(True)`` of this slot (None: compute them here).
+        self.prepared_ul: tuple[list[int], np.ndarray] | None = None
         self.report()
 
     def report(self) -> None:
@@ -219,9 +222,14 @@ class InterferenceCsi(Csi):
             return
         self._reported_ul = ul = list(self.ipn_ul)
         self._reported_dl = dl = list(self.ipn_dl)
-        self._pc_over_ipn = [x / i for x, i in zip(self.ul_pc_snr, ul, strict=True)]
-        self._full_over_ipn = [x / i for x, i in zip(self.ul_snr, ul, strict=True)]
-        self._dl_over_ipn = [x / i for x, i in zip(self.dl_snr, dl, strict=True)]
+        # Indexed loops rather than zips: compiled (fabric.native), they divide C doubles.
+        pc, full, dls = self.ul_pc_snr, self.ul_snr, self.dl_snr
+        n = self.n_ue
+        if not len(pc) == len(full) == len(dls) == len(ul) == len(dl) == n:
+            raise ValueError(f"CSI of {n} UEs: per-UE lists of other lengths")
+        self._pc_over_ipn = [pc[u] / ul[u] for u in range(n)]
+        self._full_over_ipn = [full[u] / ul[u] for u in range(n)]
+        self._dl_over_ipn = [dls[u] / dl[u] for u in range(n)]
         self.channel_changed()
 
     def move(self, u: int, ul_snr: float, dl_snr: float, ul_pc_snr: float) -> None:
@@ -267,6 +275,11 @@ class InterferenceCsi(Csi):
         power cap: the SNR per PRB stays at the power-control target up to where P_CMAX binds,
         then falls as the power spreads; the cap is where it falls below the floor (1 PRB when
         the target itself is below it)."""
+        if ul and self.prepared_ul is not None:
+            mcs_ul, max_prb = self.prepared_ul
+            self.prepared_ul = None
+            self.set_uplink(mcs_ul, max_prb)
+            return
         la = self.la_ul if ul else self.la_dl
         if ul:
             pc = np.array(self._pc_over_ipn)
@@ -285,3 +298,47 @@ class InterferenceCsi(Csi):
         spread_db = snr_db + 10 * np.log10(full / base)
         self.set_uplink(mcs, np.where(target_db < floor_db, 1.0,
                                       self.n_prb * 10 ** ((spread_db - floor_db) / 10)))
+
+
+def prepare_uplink(csis: list[InterferenceCsi]) -> None:
+    """``InterferenceCsi.update_wideband(True)`` of several cells of one configuration at once
+    (each UE's numbers are those of its cell's own call: the same element-wise operations, and
+    the EESM's weighted sum per cell), kept in each one's ``prepared_ul`` for its call in this
+    slot. The caller drops those a cell did not use (``prepared_ul = None``) before its inputs
+    (channel, OLLA, last MCS, interference report) move."""
+    first = csis[0]
+    pc_list: list[float] = []
+    full_list: list[float] = []
+    last_mcs: list[int] = []
+    offset_db: list[float] = []
+    gains: list[np.ndarray] = []
+    bounds = [0]
+    for csi in csis:
+        pc_list += csi._pc_over_ipn
+        full_list += csi._full_over_ipn
+        last_mcs += csi.la_ul.last_mcs
+        offset_db += csi.la_ul.offset_db
+        gains.append(csi.channel.gain)
+        bounds.append(bounds[-1] + csi.n_ue)
+    pc = np.array(pc_list)
+    full = np.array(full_list)
+    base = np.minimum(pc, full)
+    snr = base[:, None] * np.concatenate(gains)
+    # Csi.wideband_eesm over every cell's UEs, its weighted sum cell by cell.
+    beta = first.beta_arr[last_mcs][:, None]
+    smin = snr.min(axis=1, keepdims=True)
+    terms = np.exp((smin - snr) / beta)
+    weights = first.subband_weights
+    acc = np.concatenate([terms[a:b] @ weights
+                          for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+    eff = smin[:, 0] - beta[:, 0] * np.log(acc)
+    snr_db = 10 * np.log10(np.maximum(eff, 1e-12)) - np.array(offset_db)
+    mcs = first.wideband_mcs(snr_db)
+    floor_db = first.power_floor_db()
+    target_db = snr_db + 10 * np.log10(pc / base)
+    spread_db = snr_db + 10 * np.log10(full / base)
+    max_prb = np.where(target_db < floor_db, 1.0,
+                       first.n_prb * 10 ** ((spread_db - floor_db) / 10))
+    for i, csi in enumerate(csis):
+        a, b = bounds[i], bounds[i + 1]
+        csi.prepared_ul = (mcs[a:b], max_prb[a:b])

@@ -24,6 +24,8 @@ from scenario.nr import NrConfig
 # than the numbers it draws (at 18 gNBs x 20 UEs about 350 links step per slot), 32 steps of 24
 # subbands take 6 kB per link.
 INNOVATION_BLOCK = 32
+# Gaps (grid updates between two uses of a link) whose AR(1) factors are tabulated.
+RHO_TABLE = 64
 
 
 class LinkFading:
@@ -73,13 +75,22 @@ class LinkFading:
         # side, unit variance each); memory is touched only for links in use.
         self._innovations = np.empty((n_links, INNOVATION_BLOCK, n_subbands, 2), dtype=np.float32)
         self._innovations_c = self._innovations.view(np.complex64)[..., 0]
+        # The same memory, one row per (link, step): a step's innovations are gathered by row.
+        self._innovation_rows = self._innovations_c.reshape(n_links * INNOVATION_BLOCK, n_subbands)
         self._next = np.full(n_links, INNOVATION_BLOCK, dtype=np.int64)
+        # rho^k and the innovation's scale sqrt((1 - rho^2k) / 2) for the gaps k seen most, each as
+        # refresh would compute it for that k; complex, as the products with the complex states
+        # take them (exact).
+        rho_k = (self.rho ** np.arange(RHO_TABLE, dtype=np.int64)).astype(np.float32)
+        self._rho_k = rho_k.astype(np.complex64)
+        self._sigma_k = np.sqrt((1 - rho_k * rho_k) / 2).astype(np.complex64)
         if self.enabled:
             marks = [np.asarray(used, dtype=bool).reshape(-1)]
             if used_dl_interference is not None:
                 marks.append(np.asarray(used_dl_interference, dtype=bool).reshape(-1))
             for link in np.flatnonzero(np.concatenate(marks)).tolist():
                 self._start(link)
+        self._diffuse_amp_c = self._diffuse_amp.astype(np.complex64)  # likewise
 
     def refresh(self, links: np.ndarray, update: int) -> None:
         """Bring ``links`` (link numbers, repeats allowed) to grid update ``update``."""
@@ -102,8 +113,16 @@ class LinkFading:
             stale, last = stale[moved], last[moved]
             if not stale.size:
                 return
-        rho = (self.rho ** (update - last)).astype(np.float32)
-        pos = self._next[stale]
+        gap = update - last
+        if int(gap.max()) < RHO_TABLE and int(gap.min()) >= 0:
+            rho = self._rho_k.take(gap)
+            sigma = self._sigma_k.take(gap)
+        else:
+            rho32 = (self.rho ** gap).astype(np.float32)
+            rho = rho32.astype(np.complex64)
+            sigma = np.sqrt((1 - rho32 * rho32) / 2).astype(np.complex64)
+        nxt = self._next
+        pos = nxt[stale]
         spent = pos == INNOVATION_BLOCK
         if spent.any():
             for link in stale[spent].tolist():
@@ -111,15 +130,23 @@ class LinkFading:
                 if gen is None:
                     raise ValueError(f"link {link} was not marked used")
                 gen.standard_normal(out=self._innovations[link], dtype=np.float32)
-            pos = np.where(spent, 0, pos)
-        self._next[stale] = pos + 1
+            pos[spent] = 0
+        nxt[stale] = pos + 1
         # The innovations have variance 2 (two unit-variance parts): scale to CN(0, 1 - rho^2k).
-        d = (rho[:, None] * self._diffuse[stale]
-             + np.sqrt((1 - rho * rho) / 2)[:, None] * self._innovations_c[stale, pos])
+        # Row gathers (take) and in-place products: the same numbers as the plain expression
+        # rho d + sigma e, with fewer passes over the links.
+        d = self._diffuse.take(stale, axis=0)
+        d *= rho[:, None]
+        e = self._innovation_rows.take(stale * INNOVATION_BLOCK + pos, axis=0)
+        e *= sigma[:, None]
+        d += e
         self._diffuse[stale] = d
-        h = self._los_term[stale]
-        h += self._diffuse_amp[stale, None] * d
-        self.gain[stale] = np.abs(h) ** 2
+        d *= self._diffuse_amp_c.take(stale)[:, None]
+        h = self._los_term.take(stale, axis=0)
+        h += d
+        g = np.abs(h)
+        g *= g
+        self.gain[stale] = g
 
     def _start(self, link: int) -> None:
         """First use of ``link``: its stream, K-factor, LOS phases and diffuse state."""
@@ -178,6 +205,6 @@ class ServingLinks(SubbandGains):
             return False
         self._update = update
         fading.refresh(self.links, update)
-        self.gain = fading.gain[self.links]
+        self.gain = fading.gain.take(self.links, axis=0)
         self._rows = [None] * self.n_ue
         return True

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from netsim.nr.agv_traffic import AgvTraffic
+from netsim.nr.csi import prepare_uplink
 from netsim.nr.gnb_cell import GnbCell
 from netsim.nr.handover import HandoverControl, HandoverParams, ping_pongs
 from netsim.nr.interference import serving_gnb
@@ -220,6 +221,7 @@ class MultiCell(RadioCell):
                 for c in self.cells:
                     c.set_flow_qos(flow, qos)
         self._groups = groups
+        self._one_group = bool((groups == groups[0]).all())
         self._subband_prb = cfg.subband_prb
         self._period = cell_cfg.channel_update_period_slots
         self._last_slot: int | None = None
@@ -408,7 +410,14 @@ class MultiCell(RadioCell):
                                 if active else self._no_links, update)
         for k in active:
             cells[k].open_slot(slot_start_us)
+        # The UL wideband CSI of every cell due to refresh it, in one step; a cell that does not
+        # schedule its uplink in this slot drops it (its inputs may move before it does).
+        prepared = [cells[k].csi for k in active if cells[k].csi.stale_ul]
+        if len(prepared) > 1:
+            prepare_uplink(prepared)
         plans = [cells[k].plan_slot(s) for k in active]
+        for csi in prepared:
+            csi.prepared_ul = None
         if active:
             self._planned = _Planned(s, update, active, plans,
                                      self._tx_rows(active, [p[0] for p in plans], False),
@@ -502,27 +511,32 @@ class MultiCell(RadioCell):
             txs = [own.txs[i] if side == 0 else remote[i] for _, side, i in merged]
             beta = [own.beta[i] if side == 0 else 1.0 for _, side, i in merged]
             mine = np.array([i for i, (_, side, _) in enumerate(merged) if side == 0])
-        arr = np.array(txs)
-        c = arr[:, 0].astype(np.int64)
-        u = arr[:, 1].astype(np.int64)
-        p0 = arr[:, 2].astype(np.int64)
-        n = arr[:, 3].astype(np.int64)
-        scale_arr = arr[:, 4]
-        groups = self._groups[c]
-        co_channel = (groups[:, None] == groups[None, :]) & (c[:, None] != c[None, :])
+        # Column by column, each with its type: numpy need not discover one from the tuples.
+        cols = list(zip(*txs, strict=True))
+        c = np.array(cols[0], dtype=np.int64)
+        u = np.array(cols[1], dtype=np.int64)
+        p0 = np.array(cols[2], dtype=np.int64)
+        n = np.array(cols[3], dtype=np.int64)
+        scale_arr = np.array(cols[4], dtype=float)
+        co_channel = c[:, None] != c[None, :]
+        if not self._one_group:
+            groups = self._groups.take(c)
+            co_channel &= groups[:, None] == groups[None, :]
         n_gnb = self.n_gnb
+        links = u * n_gnb + c
         if ul:
             # Transmission j reaches gNB c[i] with its own power: its power-control power per
             # PRB relative to the whole power spread over the carrier.
-            factor = scale_arr / self.ul_snr[u, c]
-            cross = self.ul_snr[u[None, :], c[:, None]] * factor[None, :]
+            at = self.ul_snr.take(u, axis=0)  # [j, g]: from transmission j's UE at gNB g
+            factor = scale_arr / at.ravel().take(np.arange(u.size) * n_gnb + c)
+            cross = at.take(c, axis=1).T * factor[None, :]
             cross_links = u[None, :] * n_gnb + c[:, None]
         else:
-            cross = self.dl_snr[u[:, None], c[None, :]]
+            cross = self.dl_snr.take(u, axis=0).take(c, axis=1)
             # The downlink interference's own fading processes (one owner each).
             cross_links = (self.fading.dl_interference_offset + u[:, None] * n_gnb
                            + c[None, :])
-        eff, inr = slot_sinr(p0, n, scale_arr, np.array(beta), u * n_gnb + c,
+        eff, inr = slot_sinr(p0, n, scale_arr, np.array(beta), links,
                              np.where(co_channel, cross, 0.0), cross_links, self.fading, update,
                              self._subband_prb)
         if remote:

@@ -27,35 +27,59 @@ def slot_sinr(p0: np.ndarray, n: np.ndarray, scale: np.ndarray, beta: np.ndarray
     """
     end = p0 + n
     # Segments: cut at every allocation edge and every subband edge in between.
+    lo = int(p0.min())
     last = int(end.max())
     cut = np.zeros(last + 1, dtype=bool)
     cut[p0] = True
     cut[end] = True
-    cut[subband_prb * (int(p0.min()) // subband_prb + 1):last:subband_prb] = True
+    cut[subband_prb * (lo // subband_prb + 1):last:subband_prb] = True
     edges = np.flatnonzero(cut)
     starts = edges[:-1]
     lengths = np.diff(edges).astype(float)
     sb = starts // subband_prb
-    active = (p0[:, None] <= starts[None, :]) & (starts[None, :] < end[:, None])
-    overlap = (cross_inr > 0) & (p0[:, None] < end[None, :]) & (p0[None, :] < end[:, None])
-    pairs_i, pairs_j = np.nonzero(overlap)
-    pair_links = cross_links[pairs_i, pairs_j]
+    t = p0.size
+    overlap = cross_inr > 0
+    # Every transmission on the same PRBs (a loaded hall's usual slot): each is on every
+    # segment, which spares the masks below (a product by True, a sum of zeros: the same numbers).
+    whole = bool((p0 == lo).all()) and bool((end == last).all())
+    active: np.ndarray | None = None
+    if not whole:
+        active = (p0[:, None] <= starts[None, :]) & (starts[None, :] < end[:, None])
+        overlap &= (p0[:, None] < end[None, :]) & (p0[None, :] < end[:, None])
+    pairs = np.flatnonzero(overlap)  # victim i * t + interferer j, in row order
+    pair_links = cross_links.ravel().take(pairs)
     fading.refresh(np.concatenate((serving, pair_links)), update)
     gain = fading.gain
-    sinr = scale[:, None] * gain[serving[:, None], sb[None, :]]
+    # Rows of the gains by link (take), then the segments' subbands unless they are every one.
+    every_subband = sb.size == gain.shape[1] and int(sb[-1]) == sb.size - 1
+    # In double precision before the products (exact), which then need no casting on the way.
+    rows = gain.take(serving, axis=0).astype(float)
+    sinr: np.ndarray = scale[:, None] * (rows if every_subband else rows[:, sb])
     inr = np.zeros(sinr.shape)
-    if pairs_i.size:
-        contrib = (cross_inr[pairs_i, pairs_j][:, None] * gain[pair_links[:, None], sb[None, :]]
-                   * active[pairs_j])
+    if pairs.size:
+        pairs_i = pairs // t
+        rows = gain.take(pair_links, axis=0).astype(float)
+        contrib = cross_inr.ravel().take(pairs)[:, None] * (rows if every_subband
+                                                           else rows[:, sb])
+        if active is not None:
+            contrib *= active.astype(float).take(pairs - pairs_i * t, axis=0)
         # Pairs come in row order: one sum per victim over its interferers.
         first = np.flatnonzero(np.diff(pairs_i, prepend=-1))
         inr[pairs_i[first]] = np.add.reduceat(contrib, first, axis=0)
         sinr = sinr / (1.0 + inr)
+    nf = n.astype(float)
+    # exp(-rel / beta) below as exp(rel / -beta): the same quotient (division is symmetric in
+    # sign), one negation per transmission rather than per segment.
+    if active is None:
+        smin = sinr.min(axis=1)
+        rel = sinr - smin[:, None]
+        acc = (np.exp(rel / -beta[:, None]) * lengths).sum(axis=1)
+        eff = smin - beta * np.log(acc / nf)
+        return eff, (inr * lengths).sum(axis=1) / nf
     weights = np.where(active, lengths[None, :], 0.0)
     smin = np.where(active, sinr, np.inf).min(axis=1)
     # EESM relative to the smallest SINR (no overflow), over the transmission's own segments.
     rel = np.where(active, sinr, smin[:, None]) - smin[:, None]
-    acc = (np.exp(-rel / beta[:, None]) * weights).sum(axis=1)
-    nf = n.astype(float)
+    acc = (np.exp(rel / -beta[:, None]) * weights).sum(axis=1)
     eff = smin - beta * np.log(acc / nf)
     return eff, (inr * weights).sum(axis=1) / nf
