@@ -15,7 +15,7 @@ import numpy as np
 from domain import partitions
 from domain.edges import EdgePlan, make_plan, single_gnb_plan, write_plan
 from netsim.nr.interference import serving_gnb
-from netsim.nr.large_scale import InfLinks
+from netsim.nr.large_scale import hall_links
 from netsim.nr.layout import layout_from_hall
 from scenario.schema import Scenario
 
@@ -27,12 +27,9 @@ def serving_gnbs(sc: Scenario) -> dict[str, int]:
     layout = layout_from_hall(sc.hall)
     if layout is None:
         raise ValueError("hall.inf_layout is not set: the one gNB serves every UE")
-    cfg = sc.netsim.nr
-    netsim = partitions.NETSIM
     positions = sc.ue_positions_m()
-    links = InfLinks(layout, np.array(list(positions.values()), dtype=float), cfg.carrier_frequency_hz,
-                     sc.seed, f"{netsim}/nr/inf", cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi,
-                     cfg.los_mode, cfg.shadowing_enabled)
+    links = hall_links(layout, np.array(list(positions.values()), dtype=float), sc.netsim.nr, sc.seed,
+                       partitions.NETSIM + "/nr")
     serving = serving_gnb(links.coupling_loss_db)
     return {ue: int(g) for ue, g in zip(positions, serving.tolist(), strict=True)}
 

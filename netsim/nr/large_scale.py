@@ -20,6 +20,7 @@ from netsim.nr.channel import (
     normal_cdf,
 )
 from netsim.nr.layout import InfLayout
+from scenario.nr import NrConfig
 
 
 def link_geometry(layout: InfLayout, ue: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,6 +98,17 @@ class InfLinks:
             self.shadowing_db = np.zeros(shape)
         self.coupling_loss_db = (self.pathloss_db + self.shadowing_db - gnb_antenna_gain_dbi
                                  - ue_antenna_gain_dbi)
+
+
+def hall_links(layout: InfLayout, ue_positions_m: np.ndarray, cfg: NrConfig, seed: int,
+               stream_prefix: str) -> InfLinks:
+    """The large scale of the static radios at ``ue_positions_m`` (n_ue, 3) with every gNB of
+    ``layout``, drawn from the streams ``<stream_prefix>/inf/...`` with ``cfg``'s carrier, antenna
+    gains and LOS and shadowing modes: what ``MultiCell`` associates its UEs by, and what the
+    coordinator resolves the same association with before a run."""
+    return InfLinks(layout, ue_positions_m, cfg.carrier_frequency_hz, seed, f"{stream_prefix}/inf",
+                    cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi, cfg.los_mode,
+                    cfg.shadowing_enabled)
 
 
 class InfMaps:

@@ -17,7 +17,7 @@ from netsim.nr.csi import prepare_uplink
 from netsim.nr.gnb_cell import GnbCell
 from netsim.nr.handover import HandoverControl, HandoverParams, ping_pongs
 from netsim.nr.interference import serving_gnb
-from netsim.nr.large_scale import InfLinks, InfMaps
+from netsim.nr.large_scale import InfLinks, InfMaps, hall_links
 from netsim.nr.layout import InfLayout
 from netsim.nr.link_fading import LinkFading, ServingLinks
 from netsim.nr.mobility import Fleet
@@ -103,9 +103,7 @@ class MultiCell(RadioCell):
             pos = np.vstack([pos, fleet.positions_m(0)])
             links: InfLinks | Any = self.maps.links(pos)
         else:
-            links = InfLinks(layout, pos, cfg.carrier_frequency_hz, seed, f"{stream_prefix}/inf",
-                             cfg.gnb_antenna_gain_dbi, cfg.ue_antenna_gain_dbi, cfg.los_mode,
-                             cfg.shadowing_enabled)
+            links = hall_links(layout, pos, cfg, seed, stream_prefix)
         n_ue = len(ue_ids)
         self.links = links
         serving = serving_gnb(links.coupling_loss_db)
