@@ -162,6 +162,9 @@ class NetsimFederate(Federate):
                 SlotTransmissions: self._on_transmissions}
 
     def _on_transmissions(self, b: SlotTransmissions, msg: Message) -> None:
+        # Those of earlier slots can no longer be decoded against: an idle partition keeps none.
+        for old in [s for s in self.remote if s < b.slot]:
+            del self.remote[old]
         # From the partitions in name order, which is gNB order: the whole hall's order.
         into = self.remote.setdefault(b.slot, {"dl": [], "ul": []})
         into["dl"] += b.dl
