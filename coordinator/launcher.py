@@ -89,6 +89,11 @@ class Launcher(ABC):
         """Where each federate ran, for ``kpis.json`` (e.g. the Ray node), or {} when on this host."""
         return {}
 
+    def records_lost(self) -> list[str]:
+        """Federates whose records, written where the run directory could not see them, did not
+        come back when the run stopped (after ``stop``)."""
+        return []
+
     def where(self, name: str) -> str:
         """Where federate ``name`` runs when that is not this host, for a failure's reason: the
         node and every federate it holds (a lost node takes them all), or ""."""

@@ -240,6 +240,9 @@ def execute_run(
     if status == RunState.COMPLETED and len(stopped) < len(federates(scenario)):
         missing = sorted({n for n, _ in federates(scenario)} - set(stopped))
         status, reason = RunState.FAILED, f"no final report from {', '.join(missing)}"
+    lost = launcher.records_lost()
+    if status == RunState.COMPLETED and lost:
+        status, reason = RunState.FAILED, f"the records of {', '.join(lost)} did not come back from their nodes"
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
     recorded = close_records(run_dir, sim_s)

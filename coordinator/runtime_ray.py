@@ -40,6 +40,8 @@ STRATEGIES = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
 # The coordinator's settings a federate acts on; the API token and the coordinator's pid stay home.
 _NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV}
 ACTOR_START_TIMEOUT_S = 120.0  # a Ray worker process started and the federate's child spawned
+# Longest wait for the actors that write on a node of their own to ship their records back.
+SHIP_WAIT_S = 120.0
 
 
 class RayRuntimeError(RuntimeError):
@@ -184,7 +186,8 @@ class FederateActor:
         if self.local_dir is None:
             return code, None
         buf = io.BytesIO()
-        with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        # Not compressed again: the table parts are compressed already.
+        with tarfile.open(fileobj=buf, mode="w") as tar:
             for rel in sorted(set(_files(self.local_dir)) - self.inputs):
                 tar.add(self.local_dir / rel, arcname=rel)
         shutil.rmtree(self.local_dir, ignore_errors=True)
@@ -267,6 +270,7 @@ class RayLauncher(Launcher):
         self.placement_timeout_s = placement_timeout_s or given.ray_placement_timeout_s
         self.ship = given.ray_records == "ship"
         self._run_dir: Path | None = None
+        self._records_lost: list[str] = []
         self.poll_interval_s = poll_interval_s
         self.local = _SESSION.acquire(self.ray, self.address)
         self._session = True
@@ -422,6 +426,9 @@ class RayLauncher(Launcher):
         where = self._where.get(name)
         return f" on Ray node {where['node_ip']} ({where['node_id'][:12]})" if where else ""
 
+    def records_lost(self) -> list[str]:
+        return [name for name, host in sorted(self._hosted.items()) if host in self._records_lost]
+
     def where(self, name: str) -> str:
         host = self._hosted.get(name, name)
         at = self._where.get(host)
@@ -485,17 +492,24 @@ class RayLauncher(Launcher):
             self._poll()
             self._collect(max(0.0, deadline - time.monotonic()))
             time.sleep(0.02)
-        stops = [actor.stop.remote(grace_s) for name, actor in self._actors.items()]
+        stops = {actor.stop.remote(grace_s): name for name, actor in self._actors.items()}
+        shipping = {n for n, w in self._where.items() if w.get("records") == "shipped"}
         if stops:
-            ready, _ = ray.wait(stops, num_returns=len(stops), timeout=grace_s + 5.0)
+            # Shipping a node's records back takes as long as they are large: wait for them.
+            wait_s = grace_s + (SHIP_WAIT_S if shipping else 5.0)
+            ready, _ = ray.wait(list(stops), num_returns=len(stops), timeout=wait_s)
+            back: set[str] = set()
             for ref in ready:
+                name = stops[ref]
                 try:
                     _, records = ray.get(ref)
-                except Exception:  # a dead actor: what its node wrote is lost with it
-                    continue
-                if records and self._run_dir is not None:  # written on a node of its own
-                    with tarfile.open(fileobj=io.BytesIO(records), mode="r:gz") as tar:
-                        tar.extractall(self._run_dir, filter="data")
+                    if records and self._run_dir is not None:  # written on a node of its own
+                        with tarfile.open(fileobj=io.BytesIO(records), mode="r") as tar:
+                            tar.extractall(self._run_dir, filter="data")
+                        back.add(name)
+                except Exception as exc:  # a dead actor: what its node wrote is lost with it
+                    log.error("the records of %s did not come back: %s", name, short_error(exc))
+            self._records_lost = sorted(shipping - back)
         for actor in self._actors.values():
             ray.kill(actor, no_restart=True)
         if self._pg is not None:

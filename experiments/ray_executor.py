@@ -86,7 +86,7 @@ class RayExecutor:
             queue = list(tasks)
             pending: dict[Any, tuple[PointTask, float]] = {}
             requeued: set[str] = set()  # points given back to the queue after a lost worker or node
-            lost = (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError)
+            lost = (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError, ray.exceptions.ObjectLostError)
             while (queue or pending) and not cancel.is_set():
                 while queue and len(pending) < limit:
                     task = queue.pop(0)

@@ -493,7 +493,7 @@ class Scenario(Strict):
                     "events merged in time order and their messages to each other carried in memory; none: every federate in a process of its own. "
                     "What is simulated is the same either way")
     partitions: int = Field(
-        default=1, ge=1, description="netsim split by gNB into this many processes, each holding "
+        default=1, ge=1, le=100, description="netsim split by gNB into this many processes, each holding "
         "the radio cells of a contiguous block of the gNBs and exchanging each slot's "
         "transmissions with the others (needs hall.inf_layout; at most one a gNB). The same seed "
         "gives the same results with any number (docs/architecture.md sec. 13)")

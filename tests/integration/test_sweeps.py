@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -129,6 +130,8 @@ def test_ray_executor_gives_the_same_kpis_as_the_local_one(tmp_path: Path, ray_c
 def test_a_point_whose_ray_node_is_lost_goes_back_to_the_queue_once(tmp_path: Path) -> None:
     ray = pytest.importorskip("ray")
     spec = write_spec(tmp_path / "two.yaml", "two", [1, 2])
+    # Points long enough for the node to be lost while they run.
+    spec.write_text(spec.read_text().replace('"duration_s": 2.5', '"duration_s": 30'))
     results = tmp_path / "sweeps"
     # A cluster of its own: the node lost here does not come back.
     with local_ray_cluster(free_port(), 1) as address:
@@ -140,12 +143,13 @@ def test_a_point_whose_ray_node_is_lost_goes_back_to_the_queue_once(tmp_path: Pa
         proc = subprocess.Popen([sys.executable, "-m", "interfaces.cli", "sweep", str(spec), "--executor", "ray",
                                  "--address", address, "--results", str(results), "--quiet"], cwd=ROOT,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        # Both points running (one a node, one CPU each): the worker node's raylet dies.
+        # Both points running (one a node, one CPU each): the worker node's raylet dies. A point
+        # is told by its folder (its run's processes all name it).
         deadline = time.monotonic() + 300
-        while len(processes_with("cosim5g-point-")) < 2:
+        while len(running_points()) < 2:
             assert proc.poll() is None and time.monotonic() < deadline, "the points did not both start"
             time.sleep(0.2)
-        time.sleep(2.0)
+        time.sleep(1.0)
         raylets = [pid for pid in processes_with(f"--node_id={worker}")
                    if "raylet" in Path(f"/proc/{pid}/cmdline").read_text()]
         assert raylets
@@ -156,3 +160,15 @@ def test_a_point_whose_ray_node_is_lost_goes_back_to_the_queue_once(tmp_path: Pa
     assert "back to the queue once" in err, err
     rows = pq.read_table(only_dir(results) / "points.parquet").to_pylist()
     assert sorted((r["loops"], r["status"]) for r in rows) == [(1, "completed"), (2, "completed")]
+
+
+def running_points() -> set[str]:
+    """The Ray sweep points running on this host: their folders (``cosim5g-point-*``)."""
+    found = set()
+    for pid in processes_with("cosim5g-point-"):
+        try:
+            args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        found |= {m.decode() for a in args for m in re.findall(rb"cosim5g-point-[^/]+", a)}
+    return found
