@@ -10,7 +10,7 @@ import hashlib
 import math
 import queue
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from coordinator.run_state import RunState
@@ -207,12 +207,14 @@ class Conductor:
                 dones[d.federate] = d
         return dones
 
-    def stop(self, reason: str, timeout_s: float = 30.0) -> dict[str, Stopped]:
-        """Tell every federate to finish (write its results) and collect their reports."""
+    def stop(self, reason: str, timeout_s: float = 30.0, gone: Iterable[str] = ()) -> dict[str, Stopped]:
+        """Tell every federate to finish (write its results) and collect their reports, but for
+        those known ``gone`` (dead or lost: none would come)."""
         self.bus.publish(keys.stop(self.run_id), Stop(reason=reason, t_us=self.t_us).encode())
         got: dict[str, Stopped] = {}
+        expected = set(self.reporters) - set(gone)
         deadline = time.monotonic() + timeout_s
-        while len(got) < len(self.reporters):
+        while not expected <= got.keys():
             # Federates exit once they reported: no health check while collecting reports.
             item = self._next(deadline, check_health=False)
             if item is None:

@@ -33,6 +33,7 @@ from coordinator.results import (
 )
 from coordinator.run_state import RunState
 from fabric import keys
+from fabric.records import RecordSink
 from fabric.tables import write_json
 from fabric.zenoh_bus import ZenohBus
 from scenario.schema import Scenario, dump_scenario
@@ -91,6 +92,8 @@ class RunResult:
     reason: str | None = None
 
 
+# Longest wait, once the federates reported, for the rest of their streamed table parts.
+STREAM_SETTLE_S = 30.0
 # How long a federate's lost liveliness waits for its runtime to report how it died.
 DEATH_REPORT_GRACE_S = 3.0
 
@@ -159,6 +162,7 @@ def execute_run(
         wall0 = time.monotonic()
         port = free_port()
         router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
+        sink = RecordSink(router, run_id, run_dir)  # parts streamed by nodes that do not see run_dir
     except BaseException:
         launcher.stop()
         raise
@@ -167,6 +171,7 @@ def execute_run(
     log_tail: list[str] = []
     conductor = None
     stopped: dict[str, Any] = {}
+    unsettled: list[str] = []
     result_trace = ""
     windows = 0
     sim_us = 0
@@ -230,10 +235,18 @@ def execute_run(
             if conductor is not None:
                 liveness.armed = False
                 # Healthy federates write their tables before leaving, also when the run failed.
-                stopped = conductor.stop(status, timeout_s=30.0 if status == RunState.COMPLETED else 3.0)
+                gone = {*liveness.lost, *launcher.dead()} if status != RunState.COMPLETED else set()
+                stopped = conductor.stop(status, timeout_s=30.0 if status == RunState.COMPLETED else 3.0,
+                                         gone=gone)
+                # A federate closes its tables before it reports: their last streamed bytes are
+                # on their way, behind the report.
+                unsettled = sink.settle({n: s.summary.get("records", {}) for n, s in stopped.items()
+                                         if s.summary.get("records_streamed")},
+                                        timeout_s=STREAM_SETTLE_S if status == RunState.COMPLETED else 3.0)
         finally:
             launcher.stop(grace_s=3.0)
             router.close()
+            sink.close()
 
     wall_s = time.monotonic() - wall0
     sim_s = min(sim_us, scenario.duration_us) / 1e6
@@ -243,6 +256,8 @@ def execute_run(
     lost = launcher.records_lost()
     if status == RunState.COMPLETED and lost:
         status, reason = RunState.FAILED, f"the records of {', '.join(lost)} did not come back from their nodes"
+    if status == RunState.COMPLETED and unsettled:
+        status, reason = RunState.FAILED, f"streamed table parts did not come in whole: {', '.join(unsettled)}"
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
     recorded = close_records(run_dir, sim_s)

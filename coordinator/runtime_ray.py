@@ -40,6 +40,9 @@ STRATEGIES = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
 # The coordinator's settings a federate acts on; the API token and the coordinator's pid stay home.
 _NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV}
 ACTOR_START_TIMEOUT_S = 120.0  # a Ray worker process started and the federate's child spawned
+# A folder of a node where an actor's federate writes when the node does not see the run
+# directory: ``<tmp>/cosim5g-run-<actor pid>-<random>``.
+LOCAL_PREFIX = "cosim5g-run-"
 # Longest wait for the actors that write on a node of their own to ship their records back.
 SHIP_WAIT_S = 120.0
 
@@ -133,22 +136,24 @@ class FederateActor:
         self.inputs: set[str] = set()
 
     def start(self, argv: list[str], env: dict[str, str], cwd: str, run_dir: str, log_path: str,
-              inputs: bytes, ship: bool) -> dict[str, Any]:
-        """Start the federate. Where the node sees ``run_dir`` (shared) and ``ship`` is off, it
-        writes there; else into a folder of this node holding the run directory's ``inputs``
-        (a tar of what the coordinator wrote there before the start), whose records ``stop``
-        ships back."""
+              inputs: bytes, stream: bool) -> dict[str, Any]:
+        """Start the federate. Where the node sees ``run_dir`` (shared) and ``stream`` is off, it
+        writes there. Else it streams its table parts to the coordinator as it writes them
+        (``fabric.records``), and writes the rest (its log, files written at its end) into a
+        folder of this node holding the run directory's ``inputs`` (a tar of what the
+        coordinator wrote there before the start), which ``stop`` ships back."""
         import ray
 
         node_id = ray.get_runtime_context().get_node_id()
-        if ship or not Path(run_dir).is_dir():
-            self.local_dir = Path(tempfile.mkdtemp(prefix="cosim5g-run-"))
+        if stream or not Path(run_dir).is_dir():
+            remove_orphans()
+            self.local_dir = Path(tempfile.mkdtemp(prefix=f"{LOCAL_PREFIX}{os.getpid()}-"))
             with tarfile.open(fileobj=io.BytesIO(inputs), mode="r") as tar:
                 tar.extractall(self.local_dir, filter="data")
             self.inputs = set(_files(self.local_dir))
             argv = [str(self.local_dir) if a == run_dir else
                     str(self.local_dir / Path(a).relative_to(run_dir)) if a.startswith(run_dir + "/") else a
-                    for a in argv]
+                    for a in argv] + ["--records", "stream"]
             log_path = str(self.local_dir / Path(log_path).relative_to(run_dir))
             run_dir = str(self.local_dir)
         full = dict(os.environ)
@@ -162,7 +167,7 @@ class FederateActor:
                 [sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 env=full, cwd=cwd if Path(cwd).is_dir() else run_dir, start_new_session=True)
         return {"node_id": node_id, "node_ip": ray.util.get_node_ip_address(), "hostname": socket.gethostname(),
-                "actor_pid": os.getpid(), "pid": self.proc.pid, "records": "shipped" if self.local_dir else "shared"}
+                "actor_pid": os.getpid(), "pid": self.proc.pid, "records": "streamed" if self.local_dir else "shared"}
 
     def poll(self) -> int | None:
         """The child's exit code (negative: killed by that signal), None while it runs."""
@@ -193,6 +198,25 @@ class FederateActor:
         shutil.rmtree(self.local_dir, ignore_errors=True)
         self.local_dir = None
         return code, buf.getvalue()
+
+
+def remove_orphans() -> None:
+    """Remove the node-local folders of actors on this host that died without being stopped
+    (their raylet lost): each folder's name holds its actor's pid."""
+    for folder in Path(tempfile.gettempdir()).glob(f"{LOCAL_PREFIX}*-*"):
+        pid = folder.name[len(LOCAL_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _files(root: Path) -> list[str]:
@@ -268,7 +292,7 @@ class RayLauncher(Launcher):
         if self.strategy not in STRATEGIES:
             raise RayRuntimeError(f"ray placement strategy {self.strategy!r}: expected one of {', '.join(STRATEGIES)}")
         self.placement_timeout_s = placement_timeout_s or given.ray_placement_timeout_s
-        self.ship = given.ray_records == "ship"
+        self.stream = given.ray_records == "stream"
         self._run_dir: Path | None = None
         self._records_lost: list[str] = []
         self.poll_interval_s = poll_interval_s
@@ -286,6 +310,7 @@ class RayLauncher(Launcher):
         self._hosted: dict[str, str] = {}  # federate -> the process serving it
         self._logs: dict[str, Path] = {}
         self._dead: dict[str, str] = {}  # federate process -> reason
+        self._lost: set[str] = set()  # federate processes whose actor is gone (killed, node lost)
         self._pending: dict[Any, str] = {}
         self._polled = -math.inf
         self._stopped = False
@@ -389,7 +414,7 @@ class RayLauncher(Launcher):
             self._actors[spec.name] = actor
             argv = spec.argv(run_id, endpoint, str(Path(scenario_path).absolute()), str(run_dir))
             starts[spec.name] = actor.start.remote(argv, env, os.getcwd(), str(run_dir), str(log_path),
-                                                   inputs, self.ship)
+                                                   inputs, self.stream)
         addresses = {str(n["NodeID"]): str(n["NodeManagerAddress"]) for n in self.ray.nodes()}
         deadline = time.monotonic() + ACTOR_START_TIMEOUT_S
         for name, ref in starts.items():
@@ -415,6 +440,7 @@ class RayLauncher(Launcher):
             try:
                 code = self.ray.get(ref)
             except Exception as exc:
+                self._lost.add(name)
                 self._dead.setdefault(name, f"lost its Ray actor{self.where(name)} (the actor's process was "
                                       f"killed, or its node lost): {short_error(exc)}")
                 continue
@@ -492,13 +518,15 @@ class RayLauncher(Launcher):
             self._poll()
             self._collect(max(0.0, deadline - time.monotonic()))
             time.sleep(0.02)
-        stops = {actor.stop.remote(grace_s): name for name, actor in self._actors.items()}
-        shipping = {n for n, w in self._where.items() if w.get("records") == "shipped"}
+        # An actor found gone gets no stop call: on a lost node, it would only time out.
+        stops = {actor.stop.remote(grace_s): name for name, actor in self._actors.items()
+                 if name not in self._lost}
+        shipping = {n for n, w in self._where.items() if w.get("records") == "streamed"}
+        back: set[str] = set()
         if stops:
             # Shipping a node's records back takes as long as they are large: wait for them.
             wait_s = grace_s + (SHIP_WAIT_S if shipping else 5.0)
             ready, _ = ray.wait(list(stops), num_returns=len(stops), timeout=wait_s)
-            back: set[str] = set()
             for ref in ready:
                 name = stops[ref]
                 try:
@@ -509,7 +537,7 @@ class RayLauncher(Launcher):
                         back.add(name)
                 except Exception as exc:  # a dead actor: what its node wrote is lost with it
                     log.error("the records of %s did not come back: %s", name, short_error(exc))
-            self._records_lost = sorted(shipping - back)
+        self._records_lost = sorted(shipping - back)
         for actor in self._actors.values():
             ray.kill(actor, no_restart=True)
         if self._pg is not None:

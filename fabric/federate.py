@@ -37,6 +37,7 @@ from fabric.messages import (
     bundle_items,
     encode_batch,
 )
+from fabric.records import PartStream
 from fabric.seeding import rng
 from fabric.tables import FLUSH_EVERY_US, TABLES, TableWriter, part_path
 from scenario.schema import Scenario
@@ -69,6 +70,9 @@ class FederateContext:
     run_id: str
     scenario: Scenario
     results_dir: Path
+    # Table parts sent to the coordinator as they are written (``fabric.records``), not written
+    # into ``results_dir``: on a node that does not see the run directory.
+    stream_records: bool = False
 
 
 # A horizon (``Federate.external_horizon_us``) that never comes: nothing will be sent outside.
@@ -185,8 +189,9 @@ class Federate:
         if writer is None:
             if name not in TABLES:
                 raise KeyError(f"{self.name}: no run table {name!r} (tables: {', '.join(TABLES)})")
-            writer = TableWriter(part_path(self.results_dir, name, self.name), TABLES[name],
-                                 name, lambda: self.now)
+            out = (PartStream(self.bus, keys.record(self.run_id, self.name, name)) if self.ctx.stream_records
+                   else part_path(self.results_dir, name, self.name))
+            writer = TableWriter(out, TABLES[name], name, lambda: self.now)
             self._tables[name] = writer
         return writer
 
@@ -429,6 +434,8 @@ class Federate:
         summary["cpu_s"] = round(time.process_time(), 3) if self.deliver_local is None else summary["busy_wall_s"]
         summary["peak_rss_mb"] = round(peak_rss_mb(), 1)
         summary["records"] = self.records_written()
+        if self.ctx.stream_records:
+            summary["records_streamed"] = True
         return [Stopped(federate=self.name, trace_hash=self._trace.hexdigest(), events=self._events,
                         summary=summary)]
 

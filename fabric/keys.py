@@ -99,3 +99,14 @@ def coordinator_alive(run_id: str) -> str:
 def last_segment(key: str) -> str:
     """The last segment of ``key`` (the federate's name in ``ctl`` and ``alive`` keys)."""
     return key.rsplit("/", 1)[-1]
+
+
+def record(run_id: str, federate: str, table: str) -> str:
+    """Key of the bytes of ``federate``'s part of ``table`` in run ``run_id``, when its records
+    are streamed to the coordinator (``fabric.records``)."""
+    return f"{ROOT}/{run_id}/records/{federate}/{table}"
+
+
+def records_all(run_id: str) -> str:
+    """Key expression of every streamed table part of run ``run_id``."""
+    return f"{ROOT}/{run_id}/records/*/*"

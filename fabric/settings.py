@@ -64,10 +64,11 @@ class Settings(BaseSettings):
         default="PACK", description="the Ray placement strategy of a run's federate processes")
     ray_placement_timeout_s: float = Field(default=30.0, gt=0, allow_inf_nan=False,
                                            description="longest wait for Ray to place a run's federates, s")
-    ray_records: Literal["auto", "ship"] = Field(
+    ray_records: Literal["auto", "stream"] = Field(
         default="auto", description="where a Ray node's federates write: auto, into the run directory "
-        "where the node sees it (shared), else into a folder of the node, shipped back through Ray's "
-        "object store when the run stops; ship: always the latter")
+        "where the node sees it (shared), else their table parts are streamed to the coordinator over "
+        "zenoh as they are written and the rest (logs, files written at the end) is shipped back "
+        "through Ray's object store when the run stops; stream: always the latter")
 
 
 def settings(**given: Any) -> Settings:

@@ -12,7 +12,7 @@ import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -84,19 +84,33 @@ def part_path(results_dir: Path, table: str, federate: str) -> Path:
     return results_dir / "tables" / f"{table}-{federate}{PART_SUFFIX}"
 
 
+class PartOut(Protocol):
+    """Where a part's bytes go other than a file: written, flushed after each batch, closed."""
+
+    closed: bool
+
+    def write(self, data: bytes) -> int: ...
+
+    def tell(self) -> int: ...
+
+    def flush(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class TableWriter:
     """Appends rows of one table to an Arrow IPC stream file, in batches of bounded size.
 
-    ``path``: the part file; ``schema``: the table's columns; ``name``: the table's name, for
+    ``out``: the part file, or a writable file object taking its bytes; ``schema``: the table's columns; ``name``: the table's name, for
     errors; ``clock`` gives the simulated time, microseconds, the rows are recorded up to, which
     each batch carries so that a reader can tell how far a federate's records go; ``max_rows``:
     the rows of a batch. ``close`` writes what is buffered and an empty final batch marking the
     part as complete.
     """
 
-    def __init__(self, path: Path, schema: pa.Schema, name: str, clock: Callable[[], int],
+    def __init__(self, out: Path | PartOut, schema: pa.Schema, name: str, clock: Callable[[], int],
                  max_rows: int = MAX_BATCH_ROWS) -> None:
-        self.path = path
+        self.path = out if isinstance(out, Path) else None
         self.schema = schema
         self.name = name
         self.clock = clock
@@ -107,8 +121,11 @@ class TableWriter:
         self._cols: dict[str, list[Any]] = {}
         self._ncols = 0
         self._columns = set(schema.names)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = pa.OSFile(str(path), "wb")
+        if isinstance(out, Path):
+            out.parent.mkdir(parents=True, exist_ok=True)
+            self._file: Any = pa.OSFile(str(out), "wb")
+        else:  # a file-like object, e.g. a part streamed to the coordinator (``fabric.records``)
+            self._file = out
         # Compressed batches: the part of the largest table (packets) is a few bytes a row.
         opts = pa.ipc.IpcWriteOptions(compression="zstd")
         self._writer: Any = pa.ipc.new_stream(self._file, schema, options=opts)
@@ -190,6 +207,8 @@ class TableWriter:
             meta["complete"] = "1"
             self._writer.write_batch(pa.RecordBatch.from_pylist([], schema=self.schema),
                                      custom_metadata=meta)
+        else:
+            self._file.flush()  # a streamed part sends the batch now
 
     def _batch(self, rows: list[dict[str, Any]]) -> pa.RecordBatch:
         """``RecordBatch.from_pylist(rows, schema)``, converted a column at a time (as it does)

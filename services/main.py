@@ -125,6 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--endpoint", required=True, help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     ap.add_argument("--scenario", required=True, help="resolved scenario YAML of the run")
     ap.add_argument("--results", required=True, help="run directory for result tables")
+    ap.add_argument("--records", choices=["files", "stream"], default="files",
+                    help="write table parts into the run directory, or stream them to the coordinator "
+                         "(a node that does not see the run directory)")
     ap.add_argument("--member", type=member, action="append", default=[], metavar="NAME:ROLE",
                     help="a federate of the group (role group; repeatable)")
     args = ap.parse_args(argv)
@@ -146,13 +149,14 @@ def main(argv: list[str] | None = None) -> int:
     serve_from_env()
 
     bus = ZenohBus(args.endpoint, mode="client")
-    ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results))
+    stream = args.records == "stream"
+    ctx = FederateContext(args.name, args.run_id, scenario, Path(args.results), stream)
     participant: Participant
     if args.role == "group":
         from fabric.group import FederateGroup
 
-        members = [ROLES[r].federate_class()(FederateContext(name, args.run_id, scenario, Path(args.results)), bus)
-                   for name, r in args.member]
+        members = [ROLES[r].federate_class()(FederateContext(name, args.run_id, scenario, Path(args.results), stream),
+                                             bus) for name, r in args.member]
         participant = FederateGroup(ctx, bus, members)
     else:
         participant = ROLES[args.role].federate_class()(ctx, bus)

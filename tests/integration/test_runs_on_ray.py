@@ -148,6 +148,8 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
 
     monkeypatch.setenv("COSIM5G_RAY_PLACEMENT", "SPREAD")
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    # As on nodes that do not see the run directory: what the lost node streamed is kept.
+    monkeypatch.setenv("COSIM5G_RAY_RECORDS", "stream")
     # A cluster of its own: the node lost here does not come back.
     with local_ray_cluster(free_port(), 2) as address:
         ray.init(address=address, log_to_driver=False)
@@ -158,7 +160,7 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
             struck: dict[str, Any] = {}
 
             def on_progress(p: Progress) -> None:
-                if p.t_us > 300_000 and not struck:
+                if p.t_us > 2_500_000 and not struck:
                     victim = next(n for n, w in launcher.placement().items() if w["node_id"] != head)
                     node = launcher.placement()[victim]["node_id"]
                     raylets = [pid for pid in processes_with(f"--node_id={node}")
@@ -175,11 +177,13 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
             assert struck["node"][:12] in reason and "which held" in reason, reason
             held = [n for n, w in (result.kpis.get("placement") or {}).items() if w["node_id"] == struck["node"]]
             assert held and all(n in reason for n in held), reason
-            # Noticed within seconds (a lost liveliness token, then a 3-s wait for the runtime's
-            # word); the run then ends once the conductor and the lost actors' stops time out.
-            assert ended - struck["at"] < 20.0, "a lost node fails and ends the run within 20 s"
-            # What was streamed before the loss is kept: the run's tables hold it.
-            assert result.kpis["recorded"]["rows"]["packets"] > 0
+            # Noticed within seconds (lost liveliness tokens, then up to 3 s for the runtime's
+            # word); neither the conductor nor the runtime waits on the lost node's federates.
+            assert ended - struck["at"] < 10.0, "a lost node fails and ends the run within 10 s"
+            # What the lost node streamed before the loss (batches every 2 simulated s) is kept:
+            # the run's tables hold it.
+            kept = [p for p in result.kpis["recorded"]["parts"] if p["federate"] in held and p["rows"]]
+            assert kept and all(p["upto_s"] >= 2.0 and not p["complete"] for p in kept), kept
             left = wait_for_nothing_left(ray, result.run_id)
             assert left["processes"] == [] and left["placement_groups"] == [], left
         finally:
@@ -188,14 +192,15 @@ def test_a_lost_node_fails_the_run_within_seconds_naming_it_and_what_it_held(
 
 def test_records_written_on_the_nodes_come_back_through_ray(
         tmp_path: Path, on_cluster: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    # As on nodes that do not see the run directory: each federate writes into a folder of its
-    # node, shipped back when the run stops; the run's results are those of the process runtime.
-    monkeypatch.setenv("COSIM5G_RAY_RECORDS", "ship")
+    # As on nodes that do not see the run directory: each federate streams its table parts to the
+    # coordinator and writes the rest into a folder of its node, shipped back when the run stops;
+    # the run's results are those of the process runtime.
+    monkeypatch.setenv("COSIM5G_RAY_RECORDS", "stream")
     sets = ["duration_s=1.5", *MODEL_TIMING_SETS]
     local = execute_run(load_scenario(SMOKE, sets), tmp_path / "process")
     shipped = execute_run(load_scenario(SMOKE, [*sets, "runtime=ray"]), tmp_path / "ray")
     assert shipped.status == "completed", shipped.reason
-    assert {w["records"] for w in shipped.kpis["placement"].values()} == {"shipped"}
+    assert {w["records"] for w in shipped.kpis["placement"].values()} == {"streamed"}
     assert shipped.kpis["trace_hash"] == local.kpis["trace_hash"]
     assert shipped.kpis["results_hash"] == local.kpis["results_hash"]
     assert shipped.kpis["recorded"]["rows"] == local.kpis["recorded"]["rows"]
