@@ -95,7 +95,11 @@ class Route:
 
     def __init__(self, plan: PartitionPlan | None) -> None:
         self.plan = plan
-        self.netsims = [NETSIM] if plan is None else [netsim_name(p) for p in range(plan.count)]
+
+    @property
+    def netsims(self) -> list[str]:
+        """Every netsim federate of the run."""
+        return [NETSIM] if self.plan is None else [netsim_name(p) for p in range(self.plan.count)]
 
     def netsim_of(self, radio: str) -> str:
         return NETSIM if self.plan is None else self.plan.netsim_of(radio)
