@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from typing import Any
+from typing import Any, cast
 
+import msgspec
 from msgspec.structs import replace
 
-from domain.partitions import NETSIM, load_plan, netsim_name
+from domain.partitions import NETSIM, PartitionPlan, load_plan, netsim_name
 from fabric import metrics, native
 from fabric.federate import NEVER_US, Federate, Handlers
 from fabric.messages import Message
@@ -30,6 +31,7 @@ from netsim.radio_cell import (
     LOSS_CHANNEL,
     LOSS_DELAY_BUDGET,
     LOSS_HANDOVER,
+    Direction,
     FlowQos,
     Packet,
     PacketOutcome,
@@ -38,7 +40,7 @@ from netsim.radio_cell import (
 from netsim.records import OutcomeColumns
 from netsim.simple import SimpleCell
 from wire import bodies
-from wire.bodies import QosCtl, SlotTransmissions
+from wire.bodies import FadingProcesses, HeldPackets, QosCtl, SlotTransmissions
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +74,7 @@ def make_cell(federate: Federate, own_gnbs: list[int] | None = None) -> RadioCel
         return MultiCell(cfg.nr, layout, sc.ue_positions_m(), sc.seed,
                          stream_prefix=prefix, record=True,
                          fleet=Fleet(agv_routes(sc)), agv_traffic=traffic,
-                         handover=HandoverParams.from_config(cfg.handover))
+                         handover=HandoverParams.from_config(cfg.handover), own_gnbs=own_gnbs)
     return NrCell(cfg.nr, gnb_position_m=sc.hall.gnb_position_m,
                   ue_positions_m=sc.ue_positions_m(), seed=sc.seed, stream_prefix=prefix)
 
@@ -98,8 +100,9 @@ class NetsimFederate(Federate):
         # A partition's cells, and the partitions it exchanges each slot's transmissions with.
         own: list[int] | None = None
         self.peers: list[str] = []
+        self.plan: PartitionPlan | None = None
         if sc.partitions > 1:
-            plan = load_plan(sc, self.results_dir)
+            self.plan = plan = load_plan(sc, self.results_dir)
             mine = [p for p in range(plan.count) if netsim_name(p) == self.name]
             if not mine:
                 raise ValueError(f"{self.name} is no netsim partition of {plan.count}")
@@ -159,12 +162,15 @@ class NetsimFederate(Federate):
 
     def handlers(self) -> Handlers:
         return {bodies.Packet: self._on_packet, bodies.Packets: self._on_packets, QosCtl: self._lower_layer_qos,
-                SlotTransmissions: self._on_transmissions}
+                SlotTransmissions: self._on_transmissions, HeldPackets: self._on_held}
+
+    def _on_held(self, b: HeldPackets, msg: Message) -> None:
+        assert isinstance(self.cell, MultiCell)
+        self.cell.take_held(b.ue, b.start_us, [Packet(i, flow, b.ue, cast(Direction, d), size, t)
+                                               for i, flow, d, size, t in b.packets],
+                            msgspec.structs.asdict(b.fading))
 
     def _on_transmissions(self, b: SlotTransmissions, msg: Message) -> None:
-        # Those of earlier slots can no longer be decoded against: an idle partition keeps none.
-        for old in [s for s in self.remote if s < b.slot]:
-            del self.remote[old]
         # From the partitions in name order, which is gNB order: the whole hall's order.
         into = self.remote.setdefault(b.slot, {"dl": [], "ul": []})
         into["dl"] += b.dl
@@ -264,6 +270,13 @@ class NetsimFederate(Federate):
                 for peer in self.peers:
                     self.send(peer, self.now + self.slot_us,
                               SlotTransmissions(slot=slot, dl=sent_tx["dl"], ul=sent_tx["ul"]))
+            assert self.plan is not None
+            for gnb, ue, start_us, held, fading in self.cell.held_out():
+                # A handover into another partition's gNB: what the source cell held goes there.
+                self.send(netsim_name(self.plan.gnb_partition[gnb]), self.now + self.slot_us,
+                          HeldPackets(ue=ue, start_us=start_us,
+                                      packets=[(p.packet_id, p.flow, p.direction, p.size_bytes, p.enqueue_us)
+                                               for p in held], fading=FadingProcesses(**fading)))
         else:
             outcomes = self.cell.run_slot(self.now)
         self._record(outcomes)

@@ -25,6 +25,7 @@ PACKET = "packet"
 PACKETS = "packets"
 QOS_CTL = "qos_ctl"
 SLOT_TX = "slot_tx"
+HELD = "held"
 FRAME = "frame"
 AFRAME = "aframe"
 POSE = "pose"
@@ -239,3 +240,34 @@ class SlotTransmissions(Body):
     slot: int
     dl: list[tuple[int, int, int, int, float]]
     ul: list[tuple[int, int, int, int, float]]
+
+
+class FadingProcesses(msgspec.Struct):
+    """Fading processes of a hall's links handed from one netsim partition to another: per link
+    its number, grid update and next innovation, then every link's gains (float32 per subband),
+    diffuse states (complex64 per subband) and innovations left (float32), and its stream's
+    position (the generator's state, JSON)."""
+
+    links: list[int]
+    updated: list[int]
+    next: list[int]
+    gain: bytes
+    diffuse: bytes
+    innovations: bytes
+    streams: list[str]
+
+
+class HeldPackets(Body):
+    """What a netsim partition gives up when AGV ``ue``'s handover from one of its gNBs to
+    another partition's starts at ``start_us`` (docs/architecture.md sec. 13): the packets its
+    cell held for the AGV, each (packet id, flow, direction, IP bytes, enqueue time us), oldest
+    first, which the target's partition forwards (or loses) with the others held when the
+    handover ends; and the fading of the interference at the AGV, which its serving partition
+    steps."""
+
+    KIND: ClassVar[str] = HELD
+    PLANE: ClassVar[str] = NET
+    ue: str
+    start_us: int
+    packets: list[tuple[int, str, str, int, int]]
+    fading: FadingProcesses

@@ -200,6 +200,10 @@ class HandoverControl:
     def in_handover(self, ue: str) -> bool:
         return self.index[ue] in self._running
 
+    def running(self, ue: str) -> Handover | None:
+        """``ue``'s handover under way, None if it has a cell."""
+        return self._running.get(self.index[ue])
+
     def next_event_us(self) -> int:
         """The next time ``tick`` has something to do (a measurement or a handover's end)."""
         ends = [h.end_us for h in self._running.values()]

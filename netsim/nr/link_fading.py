@@ -12,7 +12,9 @@ single cell's rule for idle jumps. Every draw of a link comes from its own strea
 
 from __future__ import annotations
 
+import json
 import math
+from typing import Any
 
 import numpy as np
 
@@ -147,6 +149,37 @@ class LinkFading:
         g = np.abs(h)
         g *= g
         self.gain[stale] = g
+
+    def export(self, links: list[int]) -> dict[str, Any]:
+        """Everything that decides the next gains of ``links``: their gains, states, grid update,
+        innovations left and streams' positions (as ``load`` takes it). A process stepped by one
+        partition of the hall until now and by another from now on moves with it."""
+        idx = np.asarray(links, dtype=np.int64)
+        gens = [self._gens[link] for link in links]
+        return {"links": list(links), "updated": self.updated[idx].tolist(),
+                "next": self._next[idx].tolist(), "gain": self.gain[idx].tobytes(),
+                "diffuse": self._diffuse[idx].tobytes(),
+                "innovations": self._innovations[idx].tobytes(),
+                "streams": [json.dumps(g.bit_generator.state) if g is not None else "" for g in gens]}
+
+    def load(self, state: dict[str, Any]) -> None:
+        """Take over the processes ``export`` gave: from now on they continue here as they
+        would have where they were."""
+        links = list(state["links"])
+        if not links:
+            return
+        idx = np.asarray(links, dtype=np.int64)
+        n, m = len(links), self.n_subbands
+        self.updated[idx] = state["updated"]
+        self._next[idx] = state["next"]
+        self.gain[idx] = np.frombuffer(state["gain"], dtype=np.float32).reshape(n, m)
+        self._diffuse[idx] = np.frombuffer(state["diffuse"], dtype=np.complex64).reshape(n, m)
+        self._innovations[idx] = np.frombuffer(state["innovations"], dtype=np.float32).reshape(
+            n, INNOVATION_BLOCK, m, 2)
+        for link, stream in zip(links, state["streams"], strict=True):
+            gen = self._gens[link]
+            if stream and gen is not None:
+                gen.bit_generator.state = json.loads(stream)
 
     def _start(self, link: int) -> None:
         """First use of ``link``: its stream, K-factor, LOS phases and diffuse state."""

@@ -71,12 +71,14 @@ class MultiCell(RadioCell):
         if agv_ids and (fleet is None or len(fleet) != len(agv_ids) or handover is None):
             raise ValueError(f"{len(agv_ids)} AGVs need a fleet of as many routes and handover "
                              "settings")
-        if own_gnbs is not None and agv_ids:
-            raise ValueError("a partition of the hall (own_gnbs) cannot hold AGVs yet: their "
-                             "handovers cross partitions")
         own = set(range(layout.n_gnb) if own_gnbs is None else own_gnbs)
         if not own <= set(range(layout.n_gnb)):
             raise ValueError(f"own_gnbs {sorted(own)} must be gNB indices 0..{layout.n_gnb - 1}")
+        if agv_ids and own_gnbs is not None and handover is not None and not handover.interruption_us:
+            raise ValueError("a partition of the hall (own_gnbs) with AGVs needs a handover "
+                             "interruption: the packets a handover takes from one partition's gNB "
+                             "reach another's a slot later")
+        self.own = own
         n_cell_prb = cfg.n_prb // layout.reuse
         if n_cell_prb < 1:
             raise ValueError(f"n_prb = {cfg.n_prb} leaves no PRB per cell with reuse "
@@ -202,6 +204,9 @@ class MultiCell(RadioCell):
         self._next_move_us = 0
         self._handover_lost = 0
         self._handover_rows: list[Any] = []
+        # Handovers from one of this partition's gNBs to another's, with the packets they took
+        # from the source cell, for ``held_out``.
+        self._held_out: list[tuple[int, str, int, list[Packet], dict[str, Any]]] = []
         if agv_ids:
             assert handover is not None
             self.handover = HandoverControl(handover, agv_ids, serving[agv_rows], n_gnb, seed,
@@ -270,7 +275,18 @@ class MultiCell(RadioCell):
                 return rs - maps.coupling_loss_db(fleet.positions_m(t))
 
             tick = control.tick(t_us, rsrp_dbm, self._queues)
+            own = self.own
+            for h in tick.started:
+                if h.source in own and h.target not in own:
+                    # What the source cell gave up leaves now (what reaches the UE from now on
+                    # is held by the target's partition too), and so do the fading processes of
+                    # the interference at the UE, which the serving partition steps.
+                    self._held_out.append((h.target, h.ue, h.start_us, h.held,
+                                           self.fading.export(self._dl_interference_links(h.ue))))
+                    h.held = []
             for h in tick.completed:
+                if h.target not in own:
+                    continue  # its target's partition forwards or loses the held packets
                 self._handover_rows.append(h)
                 for p in h.lost:
                     out.append(PacketOutcome(p, None, LOSS_HANDOVER))
@@ -311,17 +327,50 @@ class MultiCell(RadioCell):
 
     def _detach(self, g: int, ue: str, t_us: int) -> list[Packet]:
         cell = self.cell_of_gnb[g]
-        assert cell is not None
+        if cell is None:  # another partition's gNB: that partition holds the UE's packets
+            return []
         self._cell_of.pop(ue, None)
         return cell.detach(ue, t_us)
 
     def _attach(self, g: int, ue: str, t_us: int, packets: list[Packet]) -> None:
+        self.serving_gnb_index[ue] = g
         cell = self.cell_of_gnb[g]
-        assert cell is not None
+        if cell is None:  # another partition's gNB: that partition attaches the UE
+            return
         self._move_in(cell, self.agv_ids.index(ue))
         self._cell_of[ue] = cell
-        self.serving_gnb_index[ue] = g
         self._attach_refused[ue] = cell.attach(ue, t_us, packets)
+
+    def held_out(self) -> list[tuple[int, str, int, list[Packet], dict[str, Any]]]:
+        """The handovers started since the last call from one of this partition's gNBs to
+        another partition's: (target gNB, UE, start us, the packets taken from the source cell,
+        oldest first, the fading of the interference at the UE: ``LinkFading.export``), for the
+        target's partition (``take_held``). They leave this partition."""
+        out, self._held_out = self._held_out, []
+        return out
+
+    def take_held(self, ue: str, start_us: int, packets: list[Packet],
+                  fading: dict[str, Any]) -> None:
+        """What another partition gave up when ``ue``'s handover from its gNB into one of this
+        partition's started at ``start_us`` (``held_out``): the packets, first among those
+        held for the target cell, as in the whole hall, and the fading processes of the
+        interference at the UE. They arrive a slot later, before the handover ends (the UE
+        receives nothing meanwhile)."""
+        control = self.handover
+        h = None if control is None else control.running(ue)
+        if h is None or h.start_us != start_us or h.target not in self.own:
+            raise ValueError(f"held packets of {ue}'s handover started at {start_us} us: no such "
+                             f"handover into this partition is running")
+        if sorted(fading["links"]) != sorted(self._dl_interference_links(ue)):
+            raise ValueError(f"{ue}'s fading processes: links {fading['links']} are not its "
+                             f"interference links")
+        h.held[:0] = packets
+        self.fading.load(fading)
+
+    def _dl_interference_links(self, ue: str) -> list[int]:
+        """The fading processes of the downlink interference at ``ue`` from each gNB."""
+        base = self.fading.dl_interference_offset + self._hall_index[ue] * self.n_gnb
+        return list(range(base, base + self.n_gnb))
 
     def handovers(self) -> dict[str, list[Any]] | None:
         """The handovers completed since the last call, as the columns of the ``handovers``
@@ -340,8 +389,9 @@ class MultiCell(RadioCell):
         handover is held for the target cell."""
         cell = self._cell_of.get(packet.ue)
         if cell is None and self.handover is not None and packet.ue in self.handover.index:
-            self.handover.hold(packet.ue, [packet])
-            return None
+            if self.handover.in_handover(packet.ue):
+                self.handover.hold(packet.ue, [packet])
+            return None  # else served by another partition's gNB: that partition takes it
         return self._cell(packet).enqueue(packet)
 
     def enqueue_many(self, packets: Iterable[Packet]) -> list[PacketOutcome]:
@@ -358,7 +408,9 @@ class MultiCell(RadioCell):
                 j += 1
             run = batch if j - i == n else batch[i:j]
             if control is not None and ue not in self._cell_of and ue in control.index:
-                control.hold(ue, run)
+                if control.in_handover(ue):
+                    control.hold(ue, run)
+                # else served by another partition's gNB: that partition takes them
             else:
                 refused += self._cell(batch[i]).enqueue_many(run)
             i = j
@@ -689,14 +741,16 @@ class MultiCell(RadioCell):
         control = self.handover
         traffic = self.agv_traffic
         assert control is not None and traffic is not None
-        done = [h for h in control.handovers if h.done]
+        # A partition counts the handovers into its gNBs (their packets are its own).
+        into = [h for h in control.handovers if h.target in self.own]
+        done = [h for h in into if h.done]
         summary = traffic.summary()
         per_agv = summary.pop("per_agv")
         for ue, row in per_agv.items():
-            mine = [h for h in control.handovers if h.ue == ue]
+            mine = [h for h in into if h.ue == ue]
             ues[ue] = {"gnb": self.serving_gnb_index[ue], **row, "handovers": len(mine)}
-        return {"count": len(self.agv_ids), "handovers": len(control.handovers),
-                "handovers_completed": len(done), "ping_pongs": ping_pongs(control.handovers),
+        return {"count": len(self.agv_ids), "handovers": len(into),
+                "handovers_completed": len(done), "ping_pongs": ping_pongs(into),
                 "interruption_s": sum((h.end_us - h.start_us) for h in done) / 1e6,
                 "forwarded_packets": sum(h.forwarded for h in done),
                 "lost_packets_handover": self._handover_lost, **summary}

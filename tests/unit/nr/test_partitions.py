@@ -1,12 +1,16 @@
 """A hall split into partitions by gNB (netsim.nr.multicell ``own_gnbs``): each partition holds
 its gNBs' cells, takes the others' transmissions of the slot before and decodes one slot late,
-and together they decide every packet as the whole hall does, with the same transmissions."""
+and together they decide every packet as the whole hall does, with the same transmissions; AGVs
+hand over between partitions, the packets held for them passed on a slot later."""
 
 from __future__ import annotations
 
 import pytest
 
+from netsim.nr.agv_traffic import AgvTraffic
+from netsim.nr.handover import HandoverParams
 from netsim.nr.layout import InfLayout
+from netsim.nr.mobility import AgvRoute, Fleet
 from netsim.nr.multicell import MultiCell, Tx
 from netsim.radio_cell import Packet, PacketOutcome
 from netsim.standalone import camera_layout
@@ -29,15 +33,19 @@ def _traffic(ues: dict, s: int, pid: int) -> list[Packet]:
     return out
 
 
-def _run(parts: list[MultiCell], ues: dict, slots: int
+def _run(parts: list[MultiCell], ues: dict, slots: int, handovers: list[tuple] | None = None
          ) -> tuple[list[tuple[int, int | None, str | None]], list[tuple]]:
     """Drive the partitions ``parts`` in lockstep, each given the others' transmissions of the
-    slot before; every packet's fate and every transmission, sorted."""
+    slot before and the packets held for an AGV handing over into one of its gNBs; every
+    packet's fate and every transmission, sorted (the handovers into ``handovers``)."""
     fates: list[tuple[int, int | None, str | None]] = []
     sent: list[tuple] = []
     remote: list[dict[str, list[Tx]]] = [{"dl": [], "ul": []} for _ in parts]
+    held: list[tuple[int, str, int, list[Packet], dict]] = []
     pid = 0
     for s in range(slots):
+        for gnb, ue, start_us, packets, fading in held:  # sent a slot ago, in before this slot
+            next(p for p in parts if gnb in p.own).take_held(ue, start_us, packets, fading)
         packets = _traffic(ues, s, pid)
         pid += len(packets)
         outcomes: list[PacketOutcome] = []
@@ -50,10 +58,14 @@ def _run(parts: list[MultiCell], ues: dict, slots: int
         planned = [part.slot_transmissions() for part in parts]
         remote = [{link: [tx for j, other in enumerate(planned) if j != i for tx in other[link]]
                    for link in ("dl", "ul")} for i in range(len(parts))]
+        held = [h for part in parts for h in part.held_out()]
         fates += [(o.packet.packet_id, o.deliver_us, o.cause) for o in outcomes]
         for part in parts:
             rec = part.transmissions() or {}
             sent += list(zip(*rec.values(), strict=True)) if rec else []
+            if handovers is not None:
+                rows = part.handovers() or {}
+                handovers += list(zip(*rows.values(), strict=True)) if rows else []
     return sorted(fates, key=lambda f: f[0]), sorted(sent)
 
 
@@ -82,3 +94,41 @@ def test_a_partition_refuses_what_it_cannot_hold() -> None:
     _, ues = camera_layout(8)
     with pytest.raises(ValueError, match="own_gnbs"):
         MultiCell(NrConfig(), layout, ues, 1, own_gnbs=[0, 7])
+
+
+@pytest.mark.parametrize("forward", [True, False])
+def test_agvs_hand_over_between_partitions_as_in_the_whole_hall(forward: bool) -> None:
+    # Four gNBs 30 m apart on a line; two AGVs driving across the boundary between gNBs 1 and 2,
+    # which the split puts in different partitions, one each way.
+    layout = InfLayout.explicit("SL", *HALL, [(15.0 + 30 * g, 30.0, 1.5) for g in range(N_GNB)])
+    _, ues = camera_layout(N_GNB * 3)
+    cfg = NrConfig()
+    params = HandoverParams(hysteresis_db=1.0, time_to_trigger_ms=40, interruption_ms=20.0,
+                            forward=forward)
+
+    def hall(own: list[int] | None) -> MultiCell:
+        route = [(20.0, 30.0), (100.0, 30.0)]
+        fleet = Fleet([AgvRoute(route, 10.0, 30.0, 1.5), AgvRoute(route, 10.0, 110.0, 1.5)])
+        traffic = AgvTraffic(["agv-0", "agv-1"], 8.0, 1.0, 1500, 120)
+        return MultiCell(cfg, layout, ues, 3, record=True, fleet=fleet, agv_traffic=traffic,
+                         handover=params, own_gnbs=own)
+
+    whole_handovers: list[tuple] = []
+    split_handovers: list[tuple] = []
+    whole = _run([hall(None)], ues, 2500, whole_handovers)
+    split = _run([hall([0, 1]), hall([2, 3])], ues, 2500, split_handovers)
+    crossing = [h for h in whole_handovers if {h[1], h[2]} == {1, 2}]
+    assert len(crossing) >= 2, whole_handovers  # both ways across the partitions' boundary
+    assert sum(h[5 if forward else 6] for h in crossing) > 0  # with packets held
+    assert sorted(split_handovers) == sorted(whole_handovers)
+    assert split == whole
+
+
+def test_a_partition_with_agvs_needs_a_handover_interruption() -> None:
+    layout = InfLayout.lattice("SL", *HALL, N_GNB)
+    _, ues = camera_layout(8)
+    fleet = Fleet([AgvRoute([(20.0, 30.0), (100.0, 30.0)], 2.0)])
+    with pytest.raises(ValueError, match="needs a handover interruption"):
+        MultiCell(NrConfig(), layout, ues, 1, fleet=fleet, agv_traffic=AgvTraffic(["agv-0"], 1.0, 1.0, 1500, 120),
+                  handover=HandoverParams(interruption_ms=0.0), own_gnbs=[0, 1])
+
