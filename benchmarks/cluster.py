@@ -1,4 +1,4 @@
-"""``make bench-cluster``: the ``factory`` scenario (360 loops, 18 gNBs, no AGVs) split into 1, 2
+"""``make bench-cluster``: the ``factory`` scenario (360 loops, 18 gNBs, 4 AGVs) split into 1, 2
 and 4 netsim partitions, in the process runtime and on 1, 2 and 4 Ray nodes of a local cluster,
 where the machine has the cores for them (a core per partition). Per case: speed (simulated s / wall s), scaling efficiency (speed over the
 partitions times the 1-partition process speed), the Ray / process ratio for the same
@@ -24,8 +24,6 @@ from benchmarks.local_cluster import local_ray_cluster
 from benchmarks.speed import FACTORY_SETS, ROOT, run_case
 from coordinator.run import free_port
 
-CASE_SETS = [*FACTORY_SETS, "agvs.count=0"]  # a partitioned run refuses AGVs
-
 
 def cases(partitions: list[int], cores: int) -> list[tuple[int, str, int]]:
     """(partitions, runtime, Ray nodes) of every case this host has the cores for."""
@@ -48,13 +46,13 @@ def run_on_ray(partitions: int, nodes: int, factory_s: float, results: Path) -> 
     with local_ray_cluster(free_port(), per_node, nodes) as address:
         launcher = RayLauncher(address=address, strategy="SPREAD" if nodes > 1 else "PACK")
         return run_case(360, 0, factory_s, "ray", results, scenario="factory",
-                        sets=[*CASE_SETS, f"partitions={partitions}"], launcher=launcher)
+                        sets=[*FACTORY_SETS, f"partitions={partitions}"], launcher=launcher)
 
 
 def render(meta: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     lines = ["# Factory on partitions and Ray nodes", "",
              f"{meta['date']}, {meta['cores']} cores, load average {meta['load_start']:.1f} at the start and "
-             f"{meta['load_end']:.1f} at the end; `factory` (360 abstract loops, 18 gNBs, no AGVs), "
+             f"{meta['load_end']:.1f} at the end; `factory` (360 abstract loops, 18 gNBs, 4 AGVs), "
              f"{meta['factory_s']:g} simulated s, model timing. Speed = simulated s / wall s; scaling "
              "efficiency = speed / (partitions x the 1-partition process speed).", "",
              "| partitions | runtime | Ray nodes | speed | scaling efficiency | ray / process | windows/s "
@@ -100,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
                 r = run_on_ray(p, nodes, args.factory_s, Path(tmp))
             else:
                 r = run_case(360, 0, args.factory_s, "process", Path(tmp), scenario="factory",
-                             sets=[*CASE_SETS, f"partitions={p}"])
+                             sets=[*FACTORY_SETS, f"partitions={p}"])
             rows.append({**r, "partitions": p, "nodes": nodes})
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, rows)

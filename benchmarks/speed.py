@@ -143,7 +143,7 @@ def render(meta: dict[str, Any], runs: dict[str, dict[str, Any]], netsim: dict[s
         grouped, alone = runs.get(f"{case} process"), runs.get(f"{case} process, cohost none")
         if grouped and alone and grouped.get("speed") and alone.get("speed"):
             lines.append(f"| {case}: cohost core / none | {grouped['speed'] / alone['speed']:.3f} (ratio) | | | | | |")
-    one, two = runs.get("factory process, no AGVs, 1 partition"), runs.get("factory process, no AGVs, 2 partitions")
+    one, two = runs.get("factory process"), runs.get("factory process, 2 partitions")
     if one and two and one.get("speed") and two.get("speed"):
         same = "same results" if one.get("results_hash") == two.get("results_hash") else "RESULTS DIFFER"
         lines.append(f"| factory: 2 partitions / 1 | {two['speed'] / one['speed']:.3f} (ratio, {same}) | | | | | |")
@@ -202,11 +202,10 @@ def main(argv: list[str] | None = None) -> int:
         if "factory" in only:
             runs["factory process"] = run_case(360, 0, args.factory_s, "process", results, profile("factory"),
                                                scenario="factory", sets=FACTORY_SETS)
-            # netsim in 1 and 2 partitions (a partitioned run refuses AGVs: both without them).
-            for n in (1, 2):
-                runs[f"factory process, no AGVs, {n} partition{'s' if n > 1 else ''}"] = run_case(
-                    360, 0, args.factory_s, "process", results, scenario="factory",
-                    sets=[*FACTORY_SETS, "agvs.count=0", f"partitions={n}"])
+            # netsim in 2 partitions, against the one netsim of the case above.
+            runs["factory process, 2 partitions"] = run_case(
+                360, 0, args.factory_s, "process", results, scenario="factory",
+                sets=[*FACTORY_SETS, "partitions=2"])
     netsim = netsim_case(2.0) if "netsim" in only else None
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, runs, netsim)
