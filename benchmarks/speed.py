@@ -202,15 +202,15 @@ def main(argv: list[str] | None = None) -> int:
         if "factory" in only:
             runs["factory process"] = run_case(360, 0, args.factory_s, "process", results, profile("factory"),
                                                scenario="factory", sets=FACTORY_SETS)
-            # netsim in 2 partitions, against the one netsim of the case above.
+            # netsim in 2 partitions, against the one netsim of the case above (profiled alike).
             runs["factory process, 2 partitions"] = run_case(
-                360, 0, args.factory_s, "process", results, scenario="factory",
+                360, 0, args.factory_s, "process", results, profile("factory-2"), scenario="factory",
                 sets=[*FACTORY_SETS, "partitions=2"])
     netsim = netsim_case(2.0) if "netsim" in only else None
     meta["load_end"] = os.getloadavg()[0]
     text = render(meta, runs, netsim)
     if args.profile:
-        for case in ("k0", "k1", "factory"):
+        for case in ("k0", "k1", "factory", "factory-2"):
             if (args.out / "profile" / case).is_dir():
                 text += (f"\n## Profile, {case} process (cProfile: speeds above are slowed by it)\n\n"
                          + profile_text(args.out / "profile" / case) + "\n")

@@ -162,7 +162,11 @@ def execute_run(
         wall0 = time.monotonic()
         port = free_port()
         router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
-        sink = RecordSink(router, run_id, run_dir)  # parts streamed by nodes that do not see run_dir
+        try:  # parts streamed by federates on nodes that do not see run_dir
+            sink = RecordSink(router, run_id, run_dir, [name for name, _ in federates(scenario)])
+        except BaseException:
+            router.close()
+            raise
     except BaseException:
         launcher.stop()
         raise
@@ -171,7 +175,7 @@ def execute_run(
     log_tail: list[str] = []
     conductor = None
     stopped: dict[str, Any] = {}
-    unsettled: list[str] = []
+    unsettled: dict[str, str] = {}
     result_trace = ""
     windows = 0
     sim_us = 0
@@ -257,7 +261,8 @@ def execute_run(
     if status == RunState.COMPLETED and lost:
         status, reason = RunState.FAILED, f"the records of {', '.join(lost)} did not come back from their nodes"
     if status == RunState.COMPLETED and unsettled:
-        status, reason = RunState.FAILED, f"streamed table parts did not come in whole: {', '.join(unsettled)}"
+        status, reason = RunState.FAILED, ("streamed table parts did not come in whole: "
+                                           + ", ".join(f"{name} ({why})" for name, why in unsettled.items()))
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
     recorded = close_records(run_dir, sim_s)

@@ -524,9 +524,17 @@ class RayLauncher(Launcher):
         shipping = {n for n, w in self._where.items() if w.get("records") == "streamed"}
         back: set[str] = set()
         if stops:
-            # Shipping a node's records back takes as long as they are large: wait for them.
-            wait_s = grace_s + (SHIP_WAIT_S if shipping else 5.0)
-            ready, _ = ray.wait(list(stops), num_returns=len(stops), timeout=wait_s)
+            ready, left = ray.wait(list(stops), num_returns=len(stops), timeout=grace_s + 5.0)
+            if left and shipping:
+                # Shipping a node's files back takes as long as they are large: wait longer for
+                # those whose actor still answers (one on a lost node would only time out).
+                self._pending.clear()
+                self._polled = -math.inf
+                self._poll()
+                self._collect(2.0)
+                left = [ref for ref in left if stops[ref] not in self._lost]
+                if left:
+                    ready += ray.wait(left, num_returns=len(left), timeout=SHIP_WAIT_S)[0]
             for ref in ready:
                 name = stops[ref]
                 try:

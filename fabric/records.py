@@ -17,7 +17,7 @@ from typing import IO
 
 from fabric import keys
 from fabric.bus import Bus
-from fabric.tables import part_path
+from fabric.tables import TABLES, part_path
 
 log = logging.getLogger(__name__)
 
@@ -68,22 +68,28 @@ class PartStream:
 
 class _Part:
     def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
         self.path = path
-        self.file: IO[bytes] | None = open(path, "wb")
         self.next = 0  # the message expected next
         self.complete = False
         self.error: str | None = None
+        self.file: IO[bytes] | None = None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.file = open(path, "xb")  # never over a part written there already
+        except OSError as exc:
+            self.error = f"not written: {exc}"
 
 
 class RecordSink:
-    """The coordinator's side: writes every streamed part of run ``run_id`` into ``run_dir``'s
-    ``tables/`` folder, byte for byte as the federate's writer produced it. Messages are taken
-    in on the bus's thread and written on a thread of the sink's own."""
+    """The coordinator's side: writes every streamed part of run ``run_id``'s ``federates`` into
+    ``run_dir``'s ``tables/`` folder, byte for byte as the federate's writer produced it (a part
+    of another name, or of a table that is none of the run's, is dropped). Messages are taken in
+    on the bus's thread and written on a thread of the sink's own."""
 
-    def __init__(self, bus: Bus, run_id: str, run_dir: Path) -> None:
+    def __init__(self, bus: Bus, run_id: str, run_dir: Path, federates: Iterable[str]) -> None:
         self.run_id = run_id
         self.run_dir = run_dir
+        self.federates = set(federates)
         self._parts: dict[tuple[str, str], _Part] = {}  # (federate, table) -> its file
         self._queue: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
         self._changed = threading.Condition()
@@ -99,6 +105,9 @@ class RecordSink:
         while (item := self._queue.get()) is not None:
             key, payload = item
             federate, table = key.rsplit("/", 2)[-2:]
+            if table not in TABLES or federate not in self.federates:
+                log.error("%s: a streamed part on %s is none of the run's tables: dropped", self.run_id, key)
+                continue
             with self._changed:
                 try:
                     self._take(federate, table, payload)
@@ -114,7 +123,9 @@ class RecordSink:
         part = self._parts.get((federate, table))
         if part is None:
             part = self._parts[(federate, table)] = _Part(part_path(self.run_dir, table, federate))
-        if part.file is None:  # ended: complete, or cut by a gap
+            if part.error:
+                log.error("%s: streamed part %s %s", self.run_id, part.path.name, part.error)
+        if part.file is None:  # ended: complete, cut by a gap, or never opened
             return
         number, last = HEADER.unpack_from(payload)
         if number != part.next:
@@ -136,18 +147,19 @@ class RecordSink:
             part.file.close()
             part.file = None
 
-    def settle(self, tables: dict[str, Iterable[str]], timeout_s: float) -> list[str]:
+    def settle(self, tables: dict[str, Iterable[str]], timeout_s: float) -> dict[str, str]:
         """Wait up to ``timeout_s`` until every part that ``tables`` names (a streaming federate
-        -> the tables it reported closed) has come in whole; the parts still missing, as
-        ``table-federate``."""
+        -> the tables it reported closed) has come in whole, or ended on an error; the parts
+        that did not come in whole, as ``table-federate`` -> what is wrong."""
         deadline = time.monotonic() + timeout_s
         with self._changed:
             while True:
-                missing = sorted(f"{t}-{f}" for f, names in tables.items() for t in names
-                                 if not (p := self._parts.get((f, t))) or not p.complete)
+                parts = {f"{t}-{f}": self._parts.get((f, t)) for f, names in tables.items() for t in names}
+                waiting = [n for n, p in parts.items() if p is None or not (p.complete or p.error)]
                 left = deadline - time.monotonic()
-                if not missing or left <= 0:
-                    return missing
+                if not waiting or left <= 0:
+                    return {n: "incomplete" if p is None or p.error is None else p.error
+                            for n, p in sorted(parts.items()) if p is None or not p.complete}
                 self._changed.wait(left)
 
     def errors(self) -> dict[str, str]:

@@ -574,10 +574,12 @@ class Scenario(Strict):
         if n > gnbs:
             raise ValueError(f"partitions = {n} is above the {gnbs} gNBs of hall.inf_layout: at "
                              f"most one partition a gNB (1..{gnbs})")
-        if self.agvs.count and not self.netsim.handover.interruption_ms > 0:
+        interruption_ms = self.netsim.handover.interruption_ms
+        if self.agvs.count and round(interruption_ms * 1000) < 1:
             raise ValueError(f"partitions = {n} with agvs.count = {self.agvs.count} needs "
-                             f"netsim.handover.interruption_ms > 0 (it is 0): a handover's held "
-                             f"packets reach another partition's gNB a slot later")
+                             f"netsim.handover.interruption_ms of at least 0.001 (it is "
+                             f"{interruption_ms:g}): a handover's held packets reach another "
+                             f"partition's gNB a slot later")
         return self
 
     def _cells_in_hall(self) -> None:

@@ -6,7 +6,7 @@ UE has no cell and the packets held for it are forwarded to the target cell or l
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Container, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -291,14 +291,17 @@ class HandoverControl:
         return h
 
 
-def ping_pongs(handovers: Sequence[Handover], min_stay_us: int = 1_000_000) -> int:
+def ping_pongs(handovers: Sequence[Handover], min_stay_us: int = 1_000_000,
+               into: Container[int] | None = None) -> int:
     """Handovers back to the cell a UE left less than ``min_stay_us`` before (measured from the
-    end of the handover that brought it to the cell it leaves)."""
+    end of the handover that brought it to the cell it leaves); with ``into``, only those into
+    these gNBs (a partition's; ``handovers`` must still hold every one of the UE's)."""
     count = 0
     last: dict[str, Handover] = {}
     for h in sorted(handovers, key=lambda h: h.start_us):
         prev = last.get(h.ue)
-        if prev is not None and h.target == prev.source and h.start_us - prev.end_us < min_stay_us:
+        if (prev is not None and h.target == prev.source and h.start_us - prev.end_us < min_stay_us
+                and (into is None or h.target in into)):
             count += 1
         last[h.ue] = h
     return count

@@ -76,8 +76,9 @@ class MultiCell(RadioCell):
             raise ValueError(f"own_gnbs {sorted(own)} must be gNB indices 0..{layout.n_gnb - 1}")
         if agv_ids and own_gnbs is not None and handover is not None and not handover.interruption_us:
             raise ValueError("a partition of the hall (own_gnbs) with AGVs needs a handover "
-                             "interruption: the packets a handover takes from one partition's gNB "
-                             "reach another's a slot later")
+                             "interruption of at least 1 us (netsim.handover.interruption_ms): the "
+                             "packets a handover takes from one partition's gNB reach another's a "
+                             "slot later")
         self.own = own
         n_cell_prb = cfg.n_prb // layout.reuse
         if n_cell_prb < 1:
@@ -750,7 +751,8 @@ class MultiCell(RadioCell):
             mine = [h for h in into if h.ue == ue]
             ues[ue] = {"gnb": self.serving_gnb_index[ue], **row, "handovers": len(mine)}
         return {"count": len(self.agv_ids), "handovers": len(into),
-                "handovers_completed": len(done), "ping_pongs": ping_pongs(into),
+                "handovers_completed": len(done),
+                "ping_pongs": ping_pongs(control.handovers, into=self.own),
                 "interruption_s": sum((h.end_us - h.start_us) for h in done) / 1e6,
                 "forwarded_packets": sum(h.forwarded for h in done),
                 "lost_packets_handover": self._handover_lost, **summary}

@@ -68,13 +68,20 @@ def wait_for_nothing_left(ray: Any, run_id: str, timeout_s: float = 10.0) -> dic
     return left
 
 
-def test_ray_runtime_gives_the_process_runtimes_trace_hash(tmp_path: Path, on_cluster: Any) -> None:
-    sets = ["duration_s=1.5", *MODEL_TIMING_SETS]
-    local = execute_run(load_scenario(SMOKE, sets), tmp_path / "process")
+def process_then_ray(scenario: Path, sets: list[str], tmp_path: Path) -> tuple[Any, Any]:
+    """``scenario`` with ``sets`` run in the process runtime, then on Ray: both completed, with
+    one trace hash and one results hash."""
+    local = execute_run(load_scenario(scenario, sets), tmp_path / "process")
     assert local.status == "completed", local.reason
-    on_ray = execute_run(load_scenario(SMOKE, [*sets, "runtime=ray"]), tmp_path / "ray")
+    on_ray = execute_run(load_scenario(scenario, [*sets, "runtime=ray"]), tmp_path / "ray")
     assert on_ray.status == "completed", on_ray.reason
     assert on_ray.kpis["trace_hash"] == local.kpis["trace_hash"]
+    assert on_ray.kpis["results_hash"] == local.kpis["results_hash"]
+    return local, on_ray
+
+
+def test_ray_runtime_gives_the_process_runtimes_trace_hash(tmp_path: Path, on_cluster: Any) -> None:
+    local, on_ray = process_then_ray(SMOKE, ["duration_s=1.5", *MODEL_TIMING_SETS], tmp_path)
     assert on_ray.kpis["tasks"] == local.kpis["tasks"]
     placement = on_ray.kpis["placement"]
     names = {n for s in federate_specs(load_scenario(SMOKE)) for n in s.names}
@@ -127,13 +134,7 @@ def test_a_run_the_cluster_cannot_hold_is_refused_before_it_starts(
 
 def test_a_partitioned_run_spreads_over_the_nodes_with_the_process_runtimes_results(
         tmp_path: Path, on_cluster: Any) -> None:
-    sets = ["duration_s=1", "partitions=2", *MODEL_TIMING_SETS]
-    local = execute_run(load_scenario(FACTORY_SMALL, sets), tmp_path / "process")
-    assert local.status == "completed", local.reason
-    on_ray = execute_run(load_scenario(FACTORY_SMALL, [*sets, "runtime=ray"]), tmp_path / "ray")
-    assert on_ray.status == "completed", on_ray.reason
-    assert on_ray.kpis["trace_hash"] == local.kpis["trace_hash"]
-    assert on_ray.kpis["results_hash"] == local.kpis["results_hash"]
+    _, on_ray = process_then_ray(FACTORY_SMALL, ["duration_s=1", "partitions=2", *MODEL_TIMING_SETS], tmp_path)
     placement = on_ray.kpis["placement"]
     assert placement["netsim-00"]["cpus_reserved"] == placement["netsim-01"]["cpus_reserved"] == 1.0
     assert len({placement[n]["node_id"] for n in ("edge", "netsim-00", "netsim-01")}) == 2, "SPREAD"
@@ -196,13 +197,8 @@ def test_records_written_on_the_nodes_come_back_through_ray(
     # coordinator and writes the rest into a folder of its node, shipped back when the run stops;
     # the run's results are those of the process runtime.
     monkeypatch.setenv("COSIM5G_RAY_RECORDS", "stream")
-    sets = ["duration_s=1.5", *MODEL_TIMING_SETS]
-    local = execute_run(load_scenario(SMOKE, sets), tmp_path / "process")
-    shipped = execute_run(load_scenario(SMOKE, [*sets, "runtime=ray"]), tmp_path / "ray")
-    assert shipped.status == "completed", shipped.reason
+    local, shipped = process_then_ray(SMOKE, ["duration_s=1.5", *MODEL_TIMING_SETS], tmp_path)
     assert {w["records"] for w in shipped.kpis["placement"].values()} == {"streamed"}
-    assert shipped.kpis["trace_hash"] == local.kpis["trace_hash"]
-    assert shipped.kpis["results_hash"] == local.kpis["results_hash"]
     assert shipped.kpis["recorded"]["rows"] == local.kpis["recorded"]["rows"]
     logs = shipped.run_dir / "logs"
     assert "netsim.federate" in (logs / "core.log").read_text(), "the logs came back too"

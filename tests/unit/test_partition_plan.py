@@ -83,7 +83,7 @@ def test_partitions_are_processes_of_their_own_beside_the_core_group() -> None:
     (["partitions=5"], r"partitions = 5 is above the 4 gNBs of hall.inf_layout: at most one "
                        r"partition a gNB \(1..4\)"),
     (["partitions=2", "agvs.count=1", "netsim.handover.interruption_ms=0"],
-     r"partitions = 2 with agvs.count = 1 needs netsim.handover.interruption_ms > 0 \(it is 0\)"),
+     r"partitions = 2 with agvs.count = 1 needs netsim.handover.interruption_ms of at least 0.001 \(it is 0\)"),
     (["partitions=0"], r"partitions"),
 ])
 def test_a_partition_count_that_does_not_fit_is_refused(sets: list[str], message: str) -> None:

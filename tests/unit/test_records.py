@@ -34,9 +34,9 @@ def write(out: Any, n: int, close: bool = True) -> TableWriter:
 
 def test_a_streamed_part_is_the_file_a_writer_on_the_run_directory_writes(tmp_path: Path) -> None:
     hub = InMemoryHub()
-    sink = RecordSink(InMemoryBus(hub), RUN, tmp_path / "run")
+    sink = RecordSink(InMemoryBus(hub), RUN, tmp_path / "run", ["netsim"])
     write(PartStream(InMemoryBus(hub), keys.record(RUN, "netsim", "packets")), 10)
-    assert sink.settle({"netsim": ["packets"]}, timeout_s=10) == []
+    assert sink.settle({"netsim": ["packets"]}, timeout_s=10) == {}
     sink.close()
     local = write(tmp_path / "local.arrows", 10)
     assert local.path is not None
@@ -47,10 +47,10 @@ def test_a_streamed_part_is_the_file_a_writer_on_the_run_directory_writes(tmp_pa
 
 def test_a_part_cut_off_with_its_node_keeps_every_batch_that_came(tmp_path: Path) -> None:
     hub = InMemoryHub()
-    sink = RecordSink(InMemoryBus(hub), RUN, tmp_path)
+    sink = RecordSink(InMemoryBus(hub), RUN, tmp_path, ["camera-0"])
     stream = PartStream(InMemoryBus(hub), keys.record(RUN, "camera-0", "packets"))
     write(stream, 10, close=False)  # two batches of 4 sent, 2 rows buffered when the node is lost
-    assert sink.settle({"camera-0": ["packets"]}, timeout_s=0.2) == ["packets-camera-0"]
+    assert sink.settle({"camera-0": ["packets"]}, timeout_s=0.2) == {"packets-camera-0": "incomplete"}
     sink.close()
     info = PartInfo()
     rows = [r["packet_id"] for b in read_part(part_path(tmp_path, "packets", "camera-0"), info)
@@ -61,11 +61,28 @@ def test_a_part_cut_off_with_its_node_keeps_every_batch_that_came(tmp_path: Path
 def test_a_gap_in_a_part_ends_it_there_and_is_reported(tmp_path: Path) -> None:
     hub = InMemoryHub()
     bus = InMemoryBus(hub)
-    sink = RecordSink(bus, RUN, tmp_path)
+    sink = RecordSink(bus, RUN, tmp_path, ["edge"])
     key = keys.record(RUN, "edge", "jobs")
     bus.publish(key, HEADER.pack(0, False) + b"abc")
     bus.publish(key, HEADER.pack(2, True) + b"def")  # message 1 never came
-    assert sink.settle({"edge": ["jobs"]}, timeout_s=0.2) == ["jobs-edge"]
+    # Ended on the gap: not waited for (a long timeout would fail the test's time, not it).
+    assert sink.settle({"edge": ["jobs"]}, timeout_s=60) == {"jobs-edge": "message 2 came where 1 was due"}
     assert sink.errors() == {"jobs-edge": "message 2 came where 1 was due"}
     sink.close()
     assert part_path(tmp_path, "jobs", "edge").read_bytes() == b"abc"
+
+
+def test_a_part_that_is_none_of_the_runs_is_dropped_and_none_is_written_over(tmp_path: Path) -> None:
+    hub = InMemoryHub()
+    bus = InMemoryBus(hub)
+    sink = RecordSink(bus, RUN, tmp_path, ["edge", "physics"])
+    bus.publish(keys.record(RUN, "edge", "secrets"), HEADER.pack(0, True) + b"abc")  # no run table
+    bus.publish(keys.record(RUN, "..", "jobs"), HEADER.pack(0, True) + b"abc")  # no federate of the run
+    written = part_path(tmp_path, "tasks", "physics")
+    written.parent.mkdir(parents=True)
+    written.write_bytes(b"physics' own")  # a federate that writes into the run directory
+    bus.publish(keys.record(RUN, "physics", "tasks"), HEADER.pack(0, True) + b"abc")
+    assert sink.settle({"physics": ["tasks"]}, timeout_s=60)["tasks-physics"].startswith("not written")
+    sink.close()
+    assert sorted(p.name for p in (tmp_path / "tables").iterdir()) == ["tasks-physics.arrows"]
+    assert written.read_bytes() == b"physics' own"

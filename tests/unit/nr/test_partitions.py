@@ -98,30 +98,38 @@ def test_a_partition_refuses_what_it_cannot_hold() -> None:
 
 @pytest.mark.parametrize("forward", [True, False])
 def test_agvs_hand_over_between_partitions_as_in_the_whole_hall(forward: bool) -> None:
-    # Four gNBs 30 m apart on a line; two AGVs driving across the boundary between gNBs 1 and 2,
-    # which the split puts in different partitions, one each way.
+    # Four gNBs 30 m apart on a line, the split putting gNBs 1 and 2 in different partitions; an
+    # AGV driving along the hall, another shuttling across their boundary (ping-pongs: no L3
+    # filtering, a short time to trigger).
     layout = InfLayout.explicit("SL", *HALL, [(15.0 + 30 * g, 30.0, 1.5) for g in range(N_GNB)])
     _, ues = camera_layout(N_GNB * 3)
     cfg = NrConfig()
-    params = HandoverParams(hysteresis_db=1.0, time_to_trigger_ms=40, interruption_ms=20.0,
+    params = HandoverParams(filter_k=0, hysteresis_db=0.5, time_to_trigger_ms=40, interruption_ms=20.0,
                             forward=forward)
 
     def hall(own: list[int] | None) -> MultiCell:
-        route = [(20.0, 30.0), (100.0, 30.0)]
-        fleet = Fleet([AgvRoute(route, 10.0, 30.0, 1.5), AgvRoute(route, 10.0, 110.0, 1.5)])
+        fleet = Fleet([AgvRoute([(20.0, 30.0), (100.0, 30.0)], 10.0, 30.0, 1.5),
+                       AgvRoute([(52.0, 30.0), (68.0, 30.0)], 10.0, 0.0, 1.5)])
         traffic = AgvTraffic(["agv-0", "agv-1"], 8.0, 1.0, 1500, 120)
         return MultiCell(cfg, layout, ues, 3, record=True, fleet=fleet, agv_traffic=traffic,
                          handover=params, own_gnbs=own)
 
     whole_handovers: list[tuple] = []
     split_handovers: list[tuple] = []
-    whole = _run([hall(None)], ues, 2500, whole_handovers)
-    split = _run([hall([0, 1]), hall([2, 3])], ues, 2500, split_handovers)
+    whole_hall, parts = [hall(None)], [hall([0, 1]), hall([2, 3])]
+    whole = _run(whole_hall, ues, 2500, whole_handovers)
+    split = _run(parts, ues, 2500, split_handovers)
     crossing = [h for h in whole_handovers if {h[1], h[2]} == {1, 2}]
-    assert len(crossing) >= 2, whole_handovers  # both ways across the partitions' boundary
+    assert len(crossing) >= 2, whole_handovers  # across the partitions' boundary
     assert sum(h[5 if forward else 6] for h in crossing) > 0  # with packets held
     assert sorted(split_handovers) == sorted(whole_handovers)
     assert split == whole
+    # Each partition counts what it decided, the handovers into its gNBs: they add up.
+    hall_agvs = whole_hall[0].stats()["agvs"]
+    assert hall_agvs["ping_pongs"] > 0
+    for key in ("handovers", "handovers_completed", "ping_pongs", "forwarded_packets",
+                "lost_packets_handover"):
+        assert sum(p.stats()["agvs"][key] for p in parts) == hall_agvs[key], key
 
 
 def test_a_partition_with_agvs_needs_a_handover_interruption() -> None:
