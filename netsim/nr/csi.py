@@ -97,15 +97,20 @@ class Csi:
             value = scale * row[sb0]
         else:
             beta = self.betas[mcs]
-            gmin = min(row[sb0 : sb1 + 1])
+            # The smallest gain by a plain loop (min's own order of comparisons): compiled
+            # (fabric.native), it compares C doubles.
+            gmin = row[sb0]
+            for sb in range(sb0 + 1, sb1 + 1):
+                if row[sb] < gmin:
+                    gmin = row[sb]
             c = scale / beta
             end = p0 + n
             acc = 0.0
-            exp = math.exp
+            # math.exp itself, not a local alias: compiled (fabric.native), that is a C call.
             for sb in range(sb0, sb1 + 1):
                 lo = sb * size
                 hi = lo + size
-                acc += ((hi if hi < end else end) - (lo if lo > p0 else p0)) * exp(
+                acc += ((hi if hi < end else end) - (lo if lo > p0 else p0)) * math.exp(
                     (gmin - row[sb]) * c)
             value = scale * gmin - beta * math.log(acc / n)
         return value

@@ -81,18 +81,18 @@ class LinkFading:
         self._innovation_rows = self._innovations_c.reshape(n_links * INNOVATION_BLOCK, n_subbands)
         self._next = np.full(n_links, INNOVATION_BLOCK, dtype=np.int64)
         # rho^k and the innovation's scale sqrt((1 - rho^2k) / 2) for the gaps k seen most, each as
-        # refresh would compute it for that k; complex, as the products with the complex states
-        # take them (exact).
+        # refresh would compute it for that k. Real factors: refresh scales the real and imaginary
+        # parts of the complex states (float32 views), the numbers of a complex product by a
+        # factor of zero imaginary part, in fewer operations.
         rho_k = (self.rho ** np.arange(RHO_TABLE, dtype=np.int64)).astype(np.float32)
-        self._rho_k = rho_k.astype(np.complex64)
-        self._sigma_k = np.sqrt((1 - rho_k * rho_k) / 2).astype(np.complex64)
+        self._rho_k = rho_k
+        self._sigma_k = np.sqrt((1 - rho_k * rho_k) / 2)
         if self.enabled:
             marks = [np.asarray(used, dtype=bool).reshape(-1)]
             if used_dl_interference is not None:
                 marks.append(np.asarray(used_dl_interference, dtype=bool).reshape(-1))
             for link in np.flatnonzero(np.concatenate(marks)).tolist():
                 self._start(link)
-        self._diffuse_amp_c = self._diffuse_amp.astype(np.complex64)  # likewise
 
     def refresh(self, links: np.ndarray, update: int) -> None:
         """Bring ``links`` (link numbers, repeats allowed) to grid update ``update``."""
@@ -120,9 +120,8 @@ class LinkFading:
             rho = self._rho_k.take(gap)
             sigma = self._sigma_k.take(gap)
         else:
-            rho32 = (self.rho ** gap).astype(np.float32)
-            rho = rho32.astype(np.complex64)
-            sigma = np.sqrt((1 - rho32 * rho32) / 2).astype(np.complex64)
+            rho = (self.rho ** gap).astype(np.float32)
+            sigma = np.sqrt((1 - rho * rho) / 2)
         nxt = self._next
         pos = nxt[stale]
         spent = pos == INNOVATION_BLOCK
@@ -135,17 +134,21 @@ class LinkFading:
             pos[spent] = 0
         nxt[stale] = pos + 1
         # The innovations have variance 2 (two unit-variance parts): scale to CN(0, 1 - rho^2k).
-        # Row gathers (take) and in-place products: the same numbers as the plain expression
-        # rho d + sigma e, with fewer passes over the links.
+        # Row gathers (take) and in-place operations on the float32 views (real and imaginary
+        # parts side by side): the same numbers as the plain expression rho d + sigma e, with
+        # fewer passes over the links.
         d = self._diffuse.take(stale, axis=0)
-        d *= rho[:, None]
+        dv = d.view(np.float32)
+        dv *= rho[:, None]
         e = self._innovation_rows.take(stale * INNOVATION_BLOCK + pos, axis=0)
-        e *= sigma[:, None]
-        d += e
+        ev = e.view(np.float32)
+        ev *= sigma[:, None]
+        dv += ev
         self._diffuse[stale] = d
-        d *= self._diffuse_amp_c.take(stale)[:, None]
+        dv *= self._diffuse_amp.take(stale)[:, None]
         h = self._los_term.take(stale, axis=0)
-        h += d
+        hv = h.view(np.float32)
+        hv += dv
         g = np.abs(h)
         g *= g
         self.gain[stale] = g

@@ -181,8 +181,9 @@ class BlerTable:
                 grid[m, j, :i0] = 1.0
                 grid[m, j, i0 : i0 + len(values)] = values
         self.grid = grid
-        # Python lists index faster than numpy scalars in the per-TB hot path.
-        self._rows = grid.tolist()
+        # Python lists index faster than numpy scalars in the per-TB hot path; typed, so that
+        # compiled (fabric.native) the lookups read C doubles.
+        self._rows: list[list[list[float]]] = grid.tolist()
         self._n_snr = n_snr
         # Grid position per code-block size: a TB's few sizes recur in every slot.
         self._cbs_pos: dict[float, tuple[int, float]] = {}
@@ -239,7 +240,8 @@ class BlerTable:
         p = self.cb_bler(mcs, cbs_bits, snr_db)
         if n_cb == 1 or p <= 0.0 or p >= 1.0:
             return p
-        return 1.0 - (1.0 - p) ** n_cb
+        # math.pow: the same C pow() as float ** int, without a generic call when compiled.
+        return 1.0 - math.pow(1.0 - p, n_cb)
 
 
 @dataclass(frozen=True, slots=True)
