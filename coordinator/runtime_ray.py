@@ -472,6 +472,14 @@ class RayLauncher(Launcher):
                              if name not in self._dead}
         self._collect(0)
 
+    def _poll_now(self, timeout_s: float) -> None:
+        """Ask every live actor at once, whatever polls are in flight, and take in the answers
+        that come within ``timeout_s``."""
+        self._pending.clear()
+        self._polled = -math.inf
+        self._poll()
+        self._collect(timeout_s)
+
     def dead(self) -> dict[str, str]:
         self._poll()
         out = {}
@@ -513,10 +521,7 @@ class RayLauncher(Launcher):
         # Federates told to stop leave on their own; give them a moment before signalling.
         deadline = time.monotonic() + min(grace_s, 2.0)
         while time.monotonic() < deadline and len(self._dead) < len(self._actors):
-            self._pending.clear()
-            self._polled = -math.inf
-            self._poll()
-            self._collect(max(0.0, deadline - time.monotonic()))
+            self._poll_now(max(0.0, deadline - time.monotonic()))
             time.sleep(0.02)
         # An actor found gone gets no stop call: on a lost node, it would only time out.
         stops = {actor.stop.remote(grace_s): name for name, actor in self._actors.items()
@@ -528,10 +533,7 @@ class RayLauncher(Launcher):
             if left and shipping:
                 # Shipping a node's files back takes as long as they are large: wait longer for
                 # those whose actor still answers (one on a lost node would only time out).
-                self._pending.clear()
-                self._polled = -math.inf
-                self._poll()
-                self._collect(2.0)
+                self._poll_now(2.0)
                 left = [ref for ref in left if stops[ref] not in self._lost]
                 if left:
                     ready += ray.wait(left, num_returns=len(left), timeout=SHIP_WAIT_S)[0]

@@ -113,9 +113,7 @@ class RecordSink:
                     self._take(federate, table, payload)
                 except (OSError, struct.error) as exc:
                     part = self._parts.get((federate, table))
-                    log.error("%s: the streamed part %s of %s cannot be written: %s", self.run_id, table,
-                              federate, exc)
-                    if part is not None:
+                    if part is not None:  # _end logs it
                         self._end(part, f"not written: {exc}")
                 self._changed.notify_all()
 
