@@ -29,8 +29,8 @@ if str(ROOT) not in sys.path:  # runnable from a checkout without installing
 
 from fabric.heap import simulation_heap  # noqa: E402
 from fabric.native import compiled_loaded  # noqa: E402
-from netsim.nr.layout import GNB_COUNTS  # noqa: E402
 from netsim.standalone import run_hall_cameras, run_uplink_cameras  # noqa: E402
+from scenario.lattice import GNB_COUNTS  # noqa: E402
 
 CASES = [(36, 8.5), (16, 8.5)]
 HALL_CASES = ["18x20:1", "4x10:1"]  # gNBs x cameras per gNB : reuse

@@ -30,7 +30,7 @@ from pydantic import ValidationError
 
 from fabric.heap import simulation_heap
 from fabric.seeding import rng as named_rng
-from netsim.nr.layout import LATTICE_COLUMNS, LATTICE_ROWS, InfLayout, drop_ues
+from netsim.nr.layout import InfLayout, drop_ues
 from netsim.nr.multicell import MultiCell
 from netsim.nr.radio_cell import NrCell
 from netsim.radio_cell import (
@@ -41,6 +41,7 @@ from netsim.radio_cell import (
     Packet,
     RadioCell,
 )
+from scenario.lattice import LATTICE_COLUMNS, LATTICE_ROWS
 from scenario.nr import NrConfig
 
 GNB_HEIGHT_M = 1.5

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from scenario.lattice import GNB_COUNTS, lattice_points_m, lattice_subset
 from scenario.nr import NrConfig
 
 
@@ -70,7 +71,6 @@ class Nodes(Strict):
 # gNB height of each InF sub-scenario, TR 38.901 Table 7.8-7 (netsim/nr/layout.py holds the whole
 # table; tests/unit/nr/test_layout.py keeps the two equal).
 INF_BS_HEIGHT_M = {"SL": 1.5, "DL": 1.5, "SH": 8.0, "DH": 8.0}
-INF_GNB_COUNTS = (1, 2, 4, 6, 9, 18)
 # Path loss compensation factors alpha of TS 38.213 7.1.1 (TS 38.331 Alpha).
 UL_ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 
@@ -103,10 +103,10 @@ class InfLayoutConfig(Strict):
     @field_validator("gnb_count")
     @classmethod
     def _lattice_subset(cls, count: int) -> int:
-        if count not in INF_GNB_COUNTS:
+        if count not in GNB_COUNTS:
             raise ValueError(
                 f"gnb_count = {count} is not a subset of the 6 x 3 gNB lattice: allowed "
-                f"{', '.join(map(str, INF_GNB_COUNTS))}, or list the positions in gnb_positions_m")
+                f"{', '.join(map(str, GNB_COUNTS))}, or list the positions in gnb_positions_m")
         return count
 
     @field_validator("ul_alpha")
@@ -132,6 +132,11 @@ class HallConfig(Strict):
         default=(8.0, 8.0), description="distance between neighbouring work cells along x and y, metres"
     )
     work_cells_per_row: int = Field(default=8, ge=1, description="work cells per row along x")
+    work_cell_fill: Literal["centre", "gnbs"] = Field(
+        default="centre", description="where the loops' work cells stand: `centre`, one grid of "
+        "work_cells_per_row a row centred on gnb_position_m, filled row by row; `gnbs` (with "
+        "inf_layout), dealt to the gNBs in turn (work cell i to gNB i mod their number), each "
+        "gNB's in such a grid centred on it, so that any load spreads over every gNB")
     ue_height_m: float = Field(default=1.5, gt=0, description="camera and robot modem height")
     inf_layout: InfLayoutConfig | None = Field(
         default=None, description="several gNBs on a TR 38.901 InF layout; none: the one gNB at "
@@ -141,6 +146,9 @@ class HallConfig(Strict):
     def _gnbs_in_hall(self) -> HallConfig:
         layout = self.inf_layout
         if layout is None:
+            if self.work_cell_fill == "gnbs":
+                raise ValueError("hall.work_cell_fill = gnbs places the work cells around several "
+                                 "gNBs: set hall.inf_layout, or work_cell_fill = centre")
             return self
         size = f"0..{self.length_m:g} x 0..{self.width_m:g} x 0..{self.height_m:g} m"
         for i, (x, y, z) in enumerate(layout.gnb_positions_m or ()):
@@ -156,13 +164,32 @@ class HallConfig(Strict):
                 f"low-gNB sub-scenario (SL, DL)")
         return self
 
+    def gnb_positions(self) -> list[tuple[float, float, float]]:
+        """Where the gNBs stand, metres: ``inf_layout``'s (its positions, or its lattice subset at
+        the sub-scenario's BS height), else the one gNB at ``gnb_position_m``."""
+        layout = self.inf_layout
+        if layout is None:
+            return [self.gnb_position_m]
+        if layout.gnb_positions_m is not None:
+            return list(layout.gnb_positions_m)
+        points = lattice_points_m(self.length_m, self.width_m, INF_BS_HEIGHT_M[layout.sub_scenario])
+        return [points[k] for k in lattice_subset(layout.gnb_count)]
+
     def work_cell_origins(self, n: int) -> list[tuple[float, float]]:
-        """Work cell centres, a grid centred on the gNB: row-major, ``work_cells_per_row`` per row."""
+        """Work cell centres (``work_cell_fill``): row-major grids of ``work_cells_per_row`` a
+        row, one centred on the gNB, or one around each gNB with work cell i at gNB i mod G."""
+        if self.work_cell_fill == "centre" or self.inf_layout is None:
+            return self._grid(n, (self.gnb_position_m[0], self.gnb_position_m[1]))
+        gnbs = self.gnb_positions()
+        grids = [self._grid(len(range(g, n, len(gnbs))), (x, y)) for g, (x, y, _) in enumerate(gnbs)]
+        return [grids[i % len(gnbs)][i // len(gnbs)] for i in range(n)]
+
+    def _grid(self, n: int, centre: tuple[float, float]) -> list[tuple[float, float]]:
         rows = math.ceil(n / self.work_cells_per_row)
         px, py = self.work_cell_pitch_m
         per_row = min(n, self.work_cells_per_row)
-        x0 = self.gnb_position_m[0] - (per_row - 1) * px / 2
-        y0 = self.gnb_position_m[1] - (rows - 1) * py / 2
+        x0 = centre[0] - (per_row - 1) * px / 2
+        y0 = centre[1] - (rows - 1) * py / 2
         return [(x0 + (i % self.work_cells_per_row) * px, y0 + (i // self.work_cells_per_row) * py)
                 for i in range(n)]
 
@@ -539,6 +566,7 @@ class Scenario(Strict):
             )
         self._hall_into_nr()
         self._cells_in_hall()
+        self._cells_apart()
         if self.hall.inf_layout is not None and self.netsim.model != "nr":
             raise ValueError(
                 f"hall.inf_layout needs netsim.model = nr (the simple model has one cell), got "
@@ -601,6 +629,27 @@ class Scenario(Strict):
             f"{fits} fit with hall.work_cells_per_row = {self.hall.work_cells_per_row} and "
             f"hall.work_cell_pitch_m = {tuple(self.hall.work_cell_pitch_m)}: lower loops, or enlarge "
             f"hall.length_m / hall.width_m (and hall.work_cells_per_row, hall.gnb_position_m) to hold them")
+
+    def _cells_apart(self) -> None:
+        """Around several gNBs (``work_cell_fill = gnbs``) one gNB's grid must not reach into its
+        neighbour's: no two work cells closer than the pitch allows."""
+        h = self.hall
+        if h.work_cell_fill != "gnbs":
+            return
+        px, py = h.work_cell_pitch_m
+        cells = h.work_cell_origins(self.loops)
+        gnbs = len(h.gnb_positions())
+        for i, (xi, yi) in enumerate(cells):
+            for j in range(i + 1, len(cells)):
+                xj, yj = cells[j]
+                if abs(xi - xj) < px - 1e-6 and abs(yi - yj) < py - 1e-6:
+                    raise ValueError(
+                        f"loops = {self.loops} work cells around {gnbs} gNBs overlap with "
+                        f"hall.work_cell_fill = gnbs: work cell {i} (gNB {i % gnbs}) at ({xi:g}, "
+                        f"{yi:g}) m and work cell {j} (gNB {j % gnbs}) at ({xj:g}, {yj:g}) m are "
+                        f"closer than hall.work_cell_pitch_m = {(px, py)}: lower loops, raise "
+                        f"hall.work_cells_per_row to spread each gNB's grid, or take "
+                        f"work_cell_fill = centre")
 
     def _hall_into_nr(self) -> None:
         """The NR channel model uses the hall of the scenario; a different one is a mistake."""

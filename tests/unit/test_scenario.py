@@ -63,6 +63,18 @@ def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
     assert parse_scenario({"loops": 128, "detailed_loops": 0, "hall": wide}).loops == 128
 
 
+def test_work_cells_around_the_gnbs_need_several_gnbs_and_may_not_overlap() -> None:
+    spread = {"work_cell_fill": "gnbs", "work_cells_per_row": 5, "work_cell_pitch_m": [4.0, 5.0],
+              "inf_layout": {"gnb_count": 18}}
+    # 20 m between gNBs: five 4-m work cells a row fill it, two rows a gNB stand in its 20 m of width.
+    assert parse_scenario({"loops": 180, "detailed_loops": 0, "hall": spread}).loops == 180
+    with pytest.raises(ScenarioError, match=r"hall: .*work_cell_fill = gnbs .* set hall.inf_layout"):
+        parse_scenario({"loops": 4, "hall": {"work_cell_fill": "gnbs"}})
+    with pytest.raises(ScenarioError, match=r"loops = 36 work cells around 18 gNBs overlap .* work cell \d+ "
+                                            r"\(gNB \d+\) .* closer than hall.work_cell_pitch_m"):
+        parse_scenario({"loops": 36, "detailed_loops": 0, "hall": {**spread, "work_cell_pitch_m": [11.0, 5.0]}})
+
+
 def test_cli_bad_input_exits_2_without_traceback(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("loops: 2\ncamera:\n  fsp: 30\n")

@@ -18,17 +18,15 @@ from netsim.nr.channel import (
 )
 from netsim.nr.large_scale import InfLinks
 from netsim.nr.layout import (
-    GNB_COUNTS,
     SUB_SCENARIOS,
     InfLayout,
     drop_ues,
-    lattice_index,
     lattice_positions_m,
-    lattice_subset,
     layout_from_hall,
     reuse_groups,
 )
-from scenario.schema import INF_BS_HEIGHT_M, INF_GNB_COUNTS, HallConfig, InfLayoutConfig
+from scenario.lattice import GNB_COUNTS, lattice_index, lattice_subset
+from scenario.schema import INF_BS_HEIGHT_M, HallConfig, InfLayoutConfig
 
 FC = 3.5e9
 
@@ -45,7 +43,6 @@ def test_sub_scenarios_are_table_7_8_7() -> None:
         assert sub.nlos_shadowing_std_db == INF_NLOS_SHADOWING_STD_DB[name]
     assert (SUB_SCENARIOS["SL"].hall_length_m, SUB_SCENARIOS["DL"].hall_length_m) == (120, 300)
     assert SUB_SCENARIOS["DH"].clutter_density == 0.6 and SUB_SCENARIOS["SH"].bs_height_m == 8
-    assert GNB_COUNTS == INF_GNB_COUNTS
 
 
 @pytest.mark.parametrize("name", ["SL", "DL"])
@@ -96,6 +93,33 @@ def test_explicit_positions_and_the_hall_setting() -> None:
     assert explicit.gnb_ids == ("gnb-0", "gnb-1", "gnb-2")
     assert (explicit.reuse, explicit.ul_p0_dbm, explicit.ul_alpha) == (3, -80, 0.8)
     assert sorted(explicit.groups) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("count", GNB_COUNTS)
+def test_the_halls_gnb_positions_are_the_layouts(count: int) -> None:
+    hall = HallConfig(inf_layout=InfLayoutConfig(gnb_count=count, sub_scenario="SH"), length_m=300,
+                      width_m=150)
+    layout = layout_from_hall(hall)
+    assert layout is not None and layout.gnb_positions_m.tolist() == [list(p) for p in hall.gnb_positions()]
+    assert HallConfig().gnb_positions() == [HallConfig().gnb_position_m]
+
+
+def test_work_cells_dealt_to_the_gnbs_stand_in_a_grid_around_each() -> None:
+    hall = HallConfig(inf_layout=InfLayoutConfig(gnb_count=4), work_cells_per_row=3,
+                      work_cell_pitch_m=(4.0, 5.0), work_cell_fill="gnbs")
+    gnbs = [(x, y) for x, y, _ in hall.gnb_positions()]  # (30, 30), (50, 30), (70, 30), (90, 30)
+    cells = hall.work_cell_origins(10)
+    # Work cell i at gNB i mod 4: gNBs 0 and 1 hold three (one row), 2 and 3 hold two.
+    assert [cells[i] for i in (0, 4, 8)] == [(26.0, 30.0), (30.0, 30.0), (34.0, 30.0)]
+    assert [cells[i] for i in (3, 7)] == [(88.0, 30.0), (92.0, 30.0)]
+    for i, (x, y) in enumerate(cells):
+        gx, gy = gnbs[i % 4]
+        assert abs(x - gx) <= 4.0 and y == gy
+    # The first loops take one work cell at each gNB, not the centre of the floor.
+    assert hall.work_cell_origins(4) == [(30.0, 30.0), (50.0, 30.0), (70.0, 30.0), (90.0, 30.0)]
+    # `centre` (the default) keeps the one grid around gnb_position_m.
+    assert HallConfig(work_cells_per_row=3).work_cell_origins(4) == [(52.0, 26.0), (60.0, 26.0),
+                                                                      (68.0, 26.0), (52.0, 34.0)]
 
 
 def test_drops_stay_in_the_hall_away_from_the_gnbs_and_repeat_with_the_seed() -> None:
