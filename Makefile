@@ -147,7 +147,7 @@ train-perception: install-train ## render the pose data set, train the Edge pose
 # The full path trains one PPO policy per lambda (two at a time, one core each, about 15 min on
 # two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 runs every step
 # on a tiny budget into a temporary directory (CI, about a minute).
-train-policy: install-train ## co-design policy: PPO per lambda, Pareto table, ship domain/models/policy.onnx (QUICK=1: 1-min check)
+train-policy: install-train ## co-design policy: PPO per lambda, Pareto table, runs in the overload hall, ship domain/models/policy.onnx (QUICK=1: 1-min check)
 	$(if $(QUICK),$(BIN)/python tools/train_policy.py --quick,nice -n 19 $(BIN)/python tools/policy_sweep.py --ship)
 
 policy-network: $(BIN)/cosim5g ## re-measure the policy environment's network table on the NR cell (training/policy/data/)

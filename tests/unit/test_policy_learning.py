@@ -251,3 +251,24 @@ def test_an_ablation_applies_only_part_of_the_policys_qos() -> None:
     assert (got["both"].pdp, got["both"].pdb_us) == (0.5, 40_000)
     assert (got["pdp"].pdp, got["pdp"].pdb_us) == (0.5, None)
     assert (got["budget"].pdp, got["budget"].pdb_us) == (1.0, 40_000)
+
+
+def test_lambda_choice_keeps_the_invariant_then_prefers_the_overload_hall() -> None:
+    from training.policy.sweep import choose, hall_scenario
+
+    def row(lam: float, lost: int, mbps: float) -> dict:
+        return {"policy": f"learned (lambda {lam:g})", "lambda": lam, "success": 0.85, "placed": 140,
+                "tasks": 165, "lost_vs_none": lost, "mean_pdp": 0.7, "injected_mbps": mbps}
+
+    rows = [{**row(0, 0, 9.0), "policy": "none", "lambda": None}, row(3, 0, 5.0), row(30, 1, 6.0), row(100, 9, 4.0)]
+    hall = {"learned (lambda 3)": {"placed": 600, "tasks": 700, "success": 0.857},
+            "learned (lambda 30)": {"placed": 680, "tasks": 700, "success": 0.971},
+            "learned (lambda 100)": {"placed": 699, "tasks": 700, "success": 0.999}}
+    # Lambda 100 loses tasks PDP 1 places in the environment: never chosen, whatever the hall says.
+    assert choose(rows, hall)[0] == 30
+    assert "most tasks placed in the overload hall (680 of 700" in choose(rows, hall)[1]
+    assert choose(rows)[0] == 3  # without the hall: the least traffic among those that qualify
+    # The hall runs are the overload sweep's hall.
+    sc = hall_scenario(None, "heuristic", 96, 2)
+    assert (sc.loops, sc.seed, sc.duration_s, sc.detailed_loops) == (96, 2, 15.0, 0)
+    assert (sc.hall.work_cells_per_row, sc.hall.work_cell_pitch_m, sc.policy.name) == (16, (4.0, 4.0), "heuristic")
