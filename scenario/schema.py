@@ -136,7 +136,8 @@ class HallConfig(Strict):
         default="centre", description="where the loops' work cells stand: `centre`, one grid of "
         "work_cells_per_row a row centred on gnb_position_m, filled row by row; `gnbs` (with "
         "inf_layout), dealt to the gNBs in turn (work cell i to gNB i mod their number), each "
-        "gNB's in such a grid centred on it, so that any load spreads over every gNB")
+        "gNB's in rows of work_cells_per_row on both sides of it, nearest first, so that any load "
+        "spreads over every gNB")
     ue_height_m: float = Field(default=1.5, gt=0, description="camera and robot modem height")
     inf_layout: InfLayoutConfig | None = Field(
         default=None, description="several gNBs on a TR 38.901 InF layout; none: the one gNB at "
@@ -176,13 +177,25 @@ class HallConfig(Strict):
         return [points[k] for k in lattice_subset(layout.gnb_count)]
 
     def work_cell_origins(self, n: int) -> list[tuple[float, float]]:
-        """Work cell centres (``work_cell_fill``): row-major grids of ``work_cells_per_row`` a
-        row, one centred on the gNB, or one around each gNB with work cell i at gNB i mod G."""
-        if self.work_cell_fill == "centre" or self.inf_layout is None:
+        """Work cell centres (``work_cell_fill``): one row-major grid of ``work_cells_per_row`` a
+        row centred on the gNB, or work cell i at gNB i mod G, in rows around it."""
+        if self.work_cell_fill == "centre":
             return self._grid(n, (self.gnb_position_m[0], self.gnb_position_m[1]))
         gnbs = self.gnb_positions()
-        grids = [self._grid(len(range(g, n, len(gnbs))), (x, y)) for g, (x, y, _) in enumerate(gnbs)]
-        return [grids[i % len(gnbs)][i // len(gnbs)] for i in range(n)]
+        px, py = self.work_cell_pitch_m
+        per_row = self.work_cells_per_row
+        # Nearest first, so that a light load sits next to its gNB: columns from the middle of the
+        # row outwards, rows alternately above and below the gNB, which stands in the aisle
+        # between the first two (never under a work cell). A work cell's place does not depend on
+        # how many there are.
+        columns = sorted((j - (per_row - 1) / 2 for j in range(per_row)), key=lambda o: (abs(o), -o))
+        out = []
+        for i in range(n):
+            x, y, _ = gnbs[i % len(gnbs)]
+            row, column = divmod(i // len(gnbs), per_row)
+            side = 1 if row % 2 == 0 else -1
+            out.append((x + columns[column] * px, y + side * (row // 2 + 0.5) * py))
+        return out
 
     def _grid(self, n: int, centre: tuple[float, float]) -> list[tuple[float, float]]:
         rows = math.ceil(n / self.work_cells_per_row)
@@ -641,15 +654,17 @@ class Scenario(Strict):
         gnbs = len(h.gnb_positions())
         for i, (xi, yi) in enumerate(cells):
             for j in range(i + 1, len(cells)):
+                if (j - i) % gnbs == 0:
+                    continue  # one gNB's grid: a pitch apart by construction
                 xj, yj = cells[j]
                 if abs(xi - xj) < px - 1e-6 and abs(yi - yj) < py - 1e-6:
                     raise ValueError(
                         f"loops = {self.loops} work cells around {gnbs} gNBs overlap with "
                         f"hall.work_cell_fill = gnbs: work cell {i} (gNB {i % gnbs}) at ({xi:g}, "
                         f"{yi:g}) m and work cell {j} (gNB {j % gnbs}) at ({xj:g}, {yj:g}) m are "
-                        f"closer than hall.work_cell_pitch_m = {(px, py)}: lower loops, raise "
-                        f"hall.work_cells_per_row to spread each gNB's grid, or take "
-                        f"work_cell_fill = centre")
+                        f"closer than hall.work_cell_pitch_m = {(px, py)}: lower loops, or shrink "
+                        f"each gNB's grid (fewer hall.work_cells_per_row along x, a smaller pitch), "
+                        f"or take work_cell_fill = centre")
 
     def _hall_into_nr(self) -> None:
         """The NR channel model uses the hall of the scenario; a different one is a mistake."""

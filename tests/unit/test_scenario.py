@@ -70,9 +70,11 @@ def test_work_cells_around_the_gnbs_need_several_gnbs_and_may_not_overlap() -> N
     assert parse_scenario({"loops": 180, "detailed_loops": 0, "hall": spread}).loops == 180
     with pytest.raises(ScenarioError, match=r"hall: .*work_cell_fill = gnbs .* set hall.inf_layout"):
         parse_scenario({"loops": 4, "hall": {"work_cell_fill": "gnbs"}})
-    with pytest.raises(ScenarioError, match=r"loops = 36 work cells around 18 gNBs overlap .* work cell \d+ "
-                                            r"\(gNB \d+\) .* closer than hall.work_cell_pitch_m"):
-        parse_scenario({"loops": 36, "detailed_loops": 0, "hall": {**spread, "work_cell_pitch_m": [11.0, 5.0]}})
+    # 11 m along x: a gNB's second work cell stands 9 m from the next gNB's first.
+    wide = {**spread, "work_cell_pitch_m": [11.0, 5.0], "inf_layout": {"gnb_count": 4}}
+    with pytest.raises(ScenarioError, match=r"loops = 8 work cells around 4 gNBs overlap .* work cell 1 "
+                                            r"\(gNB 1\) .* closer than hall.work_cell_pitch_m"):
+        parse_scenario({"loops": 8, "detailed_loops": 0, "hall": wide})
 
 
 def test_cli_bad_input_exits_2_without_traceback(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -117,9 +117,12 @@ def hall_point(label: str, model: Path | None, name: str, loops: int, seed: int)
 def hall_check(models: dict[str, tuple[Path | None, str]], jobs: int) -> dict[str, dict[str, Any]]:
     """Each policy (label -> model, policy name) at every HALL_LOADS x HALL_SEEDS point, pooled."""
     points = [(label, loops, seed) for label in models for loops in HALL_LOADS for seed in HALL_SEEDS]
-    with ProcessPoolExecutor(max_workers=jobs) as workers:
+    workers = ProcessPoolExecutor(max_workers=jobs)
+    try:
         futures = [workers.submit(hall_point, label, *models[label], loops, seed) for label, loops, seed in points]
         runs = [f.result() for f in futures]
+    finally:  # a failed run fails the check at once, not after the runs still queued
+        workers.shutdown(cancel_futures=True)
     out = {}
     for label in models:
         mine = [r for (lab, _, _), r in zip(points, runs, strict=True) if lab == label]
@@ -129,11 +132,16 @@ def hall_check(models: dict[str, tuple[Path | None, str]], jobs: int) -> dict[st
     return out
 
 
+def qualifying(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The learned rows that lose no task PDP 1 places in the environment (within the tolerance)."""
+    return [r for r in rows if r["lambda"] is not None and r["lost_vs_none"] <= LOSS_TOLERANCE * r["tasks"]]
+
+
 def choose(rows: list[dict[str, Any]], hall: dict[str, dict[str, Any]] | None = None) -> tuple[float, str]:
     """The shipped lambda and why (module docstring's rule); ``hall``: overload hall results
-    per row's policy name."""
+    per row's policy name, for the qualifying rows at least."""
     learned = [r for r in rows if r["lambda"] is not None]
-    ok = [r for r in learned if r["lost_vs_none"] <= LOSS_TOLERANCE * r["tasks"]]
+    ok = qualifying(rows)
     kept = (f"among the lambdas that lose no more than {LOSS_TOLERANCE:.0%} of the tasks PDP 1 places "
             "in the training environment")
     if ok and hall:
@@ -261,10 +269,9 @@ def main(argv: list[str] | None = None) -> int:
                                         episodes=args.episodes)
     rows = pareto_rows(baselines, learned)
     hall = None
-    if not args.no_hall:
+    if not args.no_hall and qualifying(rows):
         models: dict[str, tuple[Path | None, str]] = {"heuristic": (None, "heuristic")}
-        models.update({r["policy"]: (lam_dir(r["lambda"]) / "policy.onnx", "learned")
-                       for r in rows if r["lambda"] is not None})
+        models.update({r["policy"]: (lam_dir(r["lambda"]) / "policy.onnx", "learned") for r in qualifying(rows)})
         hall = hall_check(models, args.jobs)
     chosen, why = choose(rows, hall)
     steps = trained_steps.pop() if len(trained_steps) == 1 else sorted(trained_steps)

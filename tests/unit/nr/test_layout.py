@@ -104,19 +104,22 @@ def test_the_halls_gnb_positions_are_the_layouts(count: int) -> None:
     assert HallConfig().gnb_positions() == [HallConfig().gnb_position_m]
 
 
-def test_work_cells_dealt_to_the_gnbs_stand_in_a_grid_around_each() -> None:
+def test_work_cells_dealt_to_the_gnbs_stand_in_rows_around_each() -> None:
     hall = HallConfig(inf_layout=InfLayoutConfig(gnb_count=4), work_cells_per_row=3,
                       work_cell_pitch_m=(4.0, 5.0), work_cell_fill="gnbs")
     gnbs = [(x, y) for x, y, _ in hall.gnb_positions()]  # (30, 30), (50, 30), (70, 30), (90, 30)
-    cells = hall.work_cell_origins(10)
-    # Work cell i at gNB i mod 4: gNBs 0 and 1 hold three (one row), 2 and 3 hold two.
-    assert [cells[i] for i in (0, 4, 8)] == [(26.0, 30.0), (30.0, 30.0), (34.0, 30.0)]
-    assert [cells[i] for i in (3, 7)] == [(88.0, 30.0), (92.0, 30.0)]
+    cells = hall.work_cell_origins(26)
+    # Work cell i at gNB i mod 4, nearest first: the middle of the row above the gNB, then its
+    # right and left, then the row below; the gNB stands in the aisle between the two rows.
+    assert [cells[i] for i in (0, 4, 8, 12, 16, 20, 24)] == [
+        (30.0, 32.5), (34.0, 32.5), (26.0, 32.5), (30.0, 27.5), (34.0, 27.5), (26.0, 27.5), (30.0, 37.5)]
     for i, (x, y) in enumerate(cells):
         gx, gy = gnbs[i % 4]
-        assert abs(x - gx) <= 4.0 and y == gy
-    # The first loops take one work cell at each gNB, not the centre of the floor.
-    assert hall.work_cell_origins(4) == [(30.0, 30.0), (50.0, 30.0), (70.0, 30.0), (90.0, 30.0)]
+        assert abs(x - gx) <= 4.0 and 2.5 <= abs(y - gy) <= 7.5
+    # The first loops take one work cell at each gNB, not the centre of the floor, and a work
+    # cell stays where it is as loops are added.
+    assert hall.work_cell_origins(4) == [(30.0, 32.5), (50.0, 32.5), (70.0, 32.5), (90.0, 32.5)]
+    assert hall.work_cell_origins(10) == cells[:10]
     # `centre` (the default) keeps the one grid around gnb_position_m.
     assert HallConfig(work_cells_per_row=3).work_cell_origins(4) == [(52.0, 26.0), (60.0, 26.0),
                                                                       (68.0, 26.0), (52.0, 34.0)]
