@@ -104,7 +104,7 @@ reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the tra
 reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
 	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
 
-reproduce-factory: $(BIN)/cosim5g native ## InF-SL hall with 1, 4, 18 gNBs x none/heuristic/learned x 1..30 loops per gNB: capacity per layout and per gNB, SINR CDFs (long: 18-gNB points)
+reproduce-factory: $(BIN)/cosim5g native ## InF-SL hall with 1, 4, 18 gNBs x none/heuristic/learned x 1..30 loops per gNB: capacity per layout and per gNB, SINR CDFs (about 12 min on 2 cores)
 	$(BIN)/cosim5g sweep configs/sweeps/factory_gnbs.yaml --jobs $(JOBS)
 
 reproduce-sensitivity: $(BIN)/cosim5g native ## task success vs a fixed extra uplink latency (0-200 ms) x frame loss (0-90%), three work cells, abstract then detailed loops
