@@ -115,6 +115,9 @@ class RecordSink:
                     part = self._parts.get((federate, table))
                     if part is not None:  # _end logs it
                         self._end(part, f"not written: {exc}")
+                    else:  # failed before its part existed: nothing else would say so
+                        log.error("%s: the streamed part %s of %s cannot be written: %s", self.run_id,
+                                  table, federate, exc)
                 self._changed.notify_all()
 
     def _take(self, federate: str, table: str, payload: bytes) -> None:
