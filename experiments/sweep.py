@@ -165,15 +165,18 @@ class Sweep:
         loads = sorted({p.values[x] for p in points})
         return [[p for p in points if p.values[x] == load] for load in loads]
 
-    def _stopped_series(self) -> set[str]:
-        """Series whose last ``capacity.stop_after`` recorded loads all missed the lowest
-        threshold (task success pooled over a load's completed runs)."""
+    def _stopped_series(self, wave: list[Point]) -> set[str]:
+        """Series whose last ``capacity.stop_after`` recorded loads below the ``wave``'s all missed the
+        lowest threshold (task success pooled over a load's completed runs). Only loads below it
+        count: a resumed sweep with more seeds runs them at every load below the stop its series
+        reaches with them, not only where the fewer seeds had reached."""
         rule = self.spec.capacity
-        if rule.stop_after is None:
+        if rule.stop_after is None or not wave:
             return set()
+        load = wave[0].values[rule.x]
         placed: dict[str, dict[Any, list[int]]] = {}
         for r in self.dir.records():
-            if r["status"] != RunState.COMPLETED or rule.x not in r["values"]:
+            if r["status"] != RunState.COMPLETED or rule.x not in r["values"] or not r["values"][rule.x] < load:
                 continue
             pt = placed.setdefault(self._series_of(r["values"]), {}).setdefault(r["values"][rule.x], [0, 0])
             pt[0] += int(r["kpis"].get("tasks_placed") or 0)
@@ -194,7 +197,7 @@ class Sweep:
         prog = self.progress
         while todo and not cancel.is_set():
             for wave in self._waves(todo):
-                stopped = self._stopped_series()
+                stopped = self._stopped_series(wave)
                 run = [p for p in wave if self._series_of(p.values) not in stopped]
                 with prog.lock:
                     prog.total -= len(wave) - len(run)

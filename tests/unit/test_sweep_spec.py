@@ -280,6 +280,36 @@ def test_a_series_stops_after_its_loads_fail_and_larger_loads_are_not_run(tmp_pa
     assert "Not run: 2 points" in (tmp_path / sweep.sweep_id / "report.md").read_text()
 
 
+def test_seeds_added_on_resume_join_a_stopped_series_up_to_its_stop(tmp_path: Path) -> None:
+    from experiments.point_runs import PointOutcome, PointTask
+    from experiments.sweep import Sweep
+
+    ran: list[tuple[int, int]] = []  # (seed, loops) of `none`, which fails from 6 loops
+
+    class TableExecutor:
+        name = "table"
+
+        def run(self, tasks: list[PointTask], on_start: Any, on_done: Any, cancel: Any) -> None:
+            for t in tasks:
+                on_start(t)
+                loops = t.point.values["loops"]
+                ran.append((t.point.seed, loops))
+                on_done(t, PointOutcome(t.point.key, t.run_id, "completed", None, t.runs_dir / t.run_id, 0.1,
+                                        {"tasks": 10, "tasks_placed": 10 if loops < 6 else 5}))
+
+    grid = {"policy.name": ["none"], "loops": [2, 4, 6, 8, 10, 12]}
+    capacity = {"thresholds": [1.0, 0.98], "stop_after": 2}
+    sweep = Sweep.create(parse_spec(spec(grid=grid, capacity=capacity), SCENARIOS), tmp_path,
+                         scenarios_dir=SCENARIOS)
+    sweep.run(TableExecutor())  # type: ignore[arg-type]
+    assert ran == [(1, 2), (1, 4), (1, 6), (1, 8)]
+    ran.clear()
+    resumed = Sweep(parse_spec(spec(grid=grid, capacity=capacity, seeds=2), SCENARIOS), sweep.dir.path,
+                    scenarios_dir=SCENARIOS)
+    resumed.run(TableExecutor())  # type: ignore[arg-type]
+    assert ran == [(2, 2), (2, 4), (2, 6), (2, 8)], "the new seed runs where the series ran, and stops with it"
+
+
 def test_a_capacity_no_load_failed_is_a_lower_bound() -> None:
     from experiments.summary import capacity_text, gain_text
 
