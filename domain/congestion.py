@@ -6,6 +6,7 @@ what the cell delivers past its capacity (docs/policy.md, "Load control").
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 # Smoothing of the per-loop estimates, per frame: about the last ten frames weigh.
@@ -33,6 +34,15 @@ LOSS_TARGET = 0.1
 # takes to show (LOST_AFTER_US), rising in proportion adds 6 % as near 1.
 CUT = 0.85
 HOLD_US = 300_000
+# The cap is also cut at least to the share of the frames that arrive (1 - loss), applied to the
+# cap those frames were sent under: deep past capacity a cut or two then bring what the cameras
+# send near what the cell delivers, where a dozen cuts by CUT took 3 s at 128 loops while every
+# queue grew. The frames whose loss the Edge reads were sent about LOSS_LAG_US before: a frame
+# is known sent when a later one of its loop arrives (past capacity a loop's frames arrive a few
+# hundred ms apart), counted lost LOST_AFTER_US after that, and the cell's loss weighs about
+# the last three periods. As the lag varies, no cut goes below DEEPEST_CUT of the cap.
+LOSS_LAG_US = 600_000
+DEEPEST_CUT = 0.5
 STEP = 0.01
 
 
@@ -145,7 +155,8 @@ class Level:
     """A PDP level in [``low``, 1] steered by a delay target: cut by CUT when the cell's queueing
     delay exceeds ``target_s`` (s) (or its loss exceeds ``loss_target``, a share of frames), at
     most once per HOLD_US; raised by STEP a period otherwise (``proportional``: by STEP of its
-    value)."""
+    value). A level steered by the loss is cut at least to the share of the frames that arrive
+    times the level they were sent at (LOSS_LAG_US), never below DEEPEST_CUT of its value."""
 
     def __init__(self, target_s: float, low: float, loss_target: float = 1.0, proportional: bool = False) -> None:
         self.target_s = target_s
@@ -154,16 +165,34 @@ class Level:
         self.proportional = proportional
         self.value = 1.0
         self._last_cut_us: int | None = None
+        # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first.
+        self._past: deque[tuple[int, float]] = deque()
+
+    def _value_at(self, t_us: int) -> float:
+        """The level in force at ``t_us`` (us), at most LOSS_LAG_US ago (1 before the first period)."""
+        before = 1.0
+        for t, v in self._past:
+            if t > t_us:
+                break
+            before = v
+        return before
 
     def update(self, now_us: int, queueing_s: float, loss: float) -> None:
         """One policy period ending at ``now_us`` (us) with the cell's queueing delay
         ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         if queueing_s > self.target_s or loss > self.loss_target:
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
-                self.value = max(self.low, self.value * CUT)
+                cut = self.value * CUT
+                if self.loss_target < 1.0:  # to what the cell delivers (LOSS_LAG_US)
+                    delivered = self._value_at(now_us - LOSS_LAG_US) * (1.0 - loss)
+                    cut = min(cut, max(self.value * DEEPEST_CUT, delivered))
+                self.value = max(self.low, cut)
                 self._last_cut_us = now_us
         else:
             self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
+        self._past.append((now_us, self.value))
+        while len(self._past) > 1 and self._past[1][0] <= now_us - LOSS_LAG_US:
+            self._past.popleft()
 
 
 class LoadControl:

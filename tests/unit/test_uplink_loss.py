@@ -11,9 +11,14 @@ from test_conformance import CASES, Input, drive, tiny_scenario
 
 from domain.congestion import (
     CELL_ALPHA,
+    CUT,
+    DEEPEST_CUT,
+    HOLD_US,
     LOOP_ALPHA,
+    LOSS_LAG_US,
     LOSS_TARGET,
     LOST_AFTER_US,
+    Level,
     LoadControl,
     UplinkMonitor,
 )
@@ -129,6 +134,28 @@ def test_past_capacity_the_cap_holds_the_injected_traffic_near_what_the_cell_del
     # Without the sequence the Edge sees only frames that arrive, on time: the cap never moves.
     blind, injected = cell(loops, capacity, 200, seq=False)
     assert blind.cap == 1.0 and min(injected[100:]) == 1.5 * loops
+
+
+def test_deep_past_capacity_the_cap_comes_down_within_a_second() -> None:
+    # 6.6x what the cell carries: cut to the delivered share, a dozen cuts by CUT took 3 s.
+    _, injected = cell(128, 29, 100, seq=True)
+    assert max(injected[20:]) < 1.5 * 29
+
+
+def test_a_cut_follows_the_delivered_share_of_the_level_the_lost_frames_were_sent_at() -> None:
+    near = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
+    near.update(0, 0.0, 0.12)  # just past capacity: 88 % arrive, the cut is CUT as ever
+    assert near.value == pytest.approx(CUT)
+    deep = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
+    deep.update(0, 0.0, 0.7)  # 30 % arrive: never more than DEEPEST_CUT at once
+    assert deep.value == pytest.approx(DEEPEST_CUT)
+    for t in range(50_000, LOSS_LAG_US, 50_000):  # a period each, no loss: up by STEP of it
+        deep.update(t, 0.0, 0.0)
+    deep.update(LOSS_LAG_US + HOLD_US, 0.0, 0.4)  # 60 % of the frames sent HOLD_US in arrive
+    assert deep.value == pytest.approx(DEEPEST_CUT * 1.01 ** (HOLD_US // 50_000) * 0.6)
+    delay = Level(0.025, 0.0)  # a level steered by the delay alone is cut by CUT whatever the loss
+    delay.update(0, 0.1, 1.0)
+    assert delay.value == pytest.approx(CUT)
 
 
 def test_below_capacity_the_sequence_changes_nothing() -> None:
