@@ -6,6 +6,7 @@ what the cell delivers past its capacity (docs/policy.md, "Load control").
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -155,8 +156,10 @@ class Level:
     """A PDP level in [``low``, 1] steered by a delay target: cut by CUT when the cell's queueing
     delay exceeds ``target_s`` (s) (or its loss exceeds ``loss_target``, a share of frames), at
     most once per HOLD_US; raised by STEP a period otherwise (``proportional``: by STEP of its
-    value). A level steered by the loss is cut at least to the share of the frames that arrive
-    times the level they were sent at (LOSS_LAG_US), never below DEEPEST_CUT of its value."""
+    value). A level steered by the loss is cut to the lesser of CUT of its value and the share
+    of the frames that arrive times the level in force LOSS_LAG_US before, when they were sent
+    (after a climb, that level is the last one known to be carried), never below DEEPEST_CUT of
+    its value."""
 
     def __init__(self, target_s: float, low: float, loss_target: float = 1.0, proportional: bool = False) -> None:
         self.target_s = target_s
@@ -178,8 +181,9 @@ class Level:
         return before
 
     def update(self, now_us: int, queueing_s: float, loss: float) -> None:
-        """One policy period ending at ``now_us`` (us) with the cell's queueing delay
-        ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
+        """One policy period ending at ``now_us`` (us, never before the last call's) with the
+        cell's queueing delay ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
+        loss = 1.0 if math.isnan(loss) else min(1.0, max(0.0, loss))  # a share; NaN: nothing known to arrive
         if queueing_s > self.target_s or loss > self.loss_target:
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 cut = self.value * CUT

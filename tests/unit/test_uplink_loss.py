@@ -158,6 +158,28 @@ def test_a_cut_follows_the_delivered_share_of_the_level_the_lost_frames_were_sen
     assert delay.value == pytest.approx(CUT)
 
 
+def test_a_level_keeps_what_was_in_force_a_loss_lag_ago_over_irregular_periods() -> None:
+    level = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
+    times = [0, 30_000, 110_000, 170_000, 400_000, 420_000, 700_000, 1_300_000, 1_310_000, 1_900_000]
+    seen = []
+    for t in times:  # climbing from 1 (capped): cut once at 400 ms, then climbing again
+        level.update(t, 0.1 if t == 400_000 else 0.0, 0.0)
+        seen.append((t, level.value))
+        in_force = [v for u, v in seen if u <= t - LOSS_LAG_US]
+        assert level._value_at(t - LOSS_LAG_US) == (in_force[-1] if in_force else 1.0)
+    assert len(level._past) <= 3  # only the last LOSS_LAG_US, and what was in force before them
+    rising = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
+    rising.value = 0.2
+    for k in range(1, 13):  # 12 periods up by 1 %: the cap of LOSS_LAG_US ago was 0.2 x 1.01
+        rising.update(k * 50_000, 0.0, 0.0)
+    rising.update(13 * 50_000, 0.0, 0.12)  # 88 % of those arrived: below CUT of today's cap
+    assert rising.value == pytest.approx(0.2 * 1.01 * 0.88)
+    for bad in (float("nan"), 1.5):  # nothing known to arrive: never more than DEEPEST_CUT at once
+        odd = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
+        odd.update(0, 0.1, bad)
+        assert odd.value == pytest.approx(DEEPEST_CUT)
+
+
 def test_below_capacity_the_sequence_changes_nothing() -> None:
     load, injected = cell(20, 60, 100, seq=True)  # 20 or 40 frames a period, all carried
     assert load.cap == 1.0 and load.fill == 1.0 and max(injected) <= 60
