@@ -169,7 +169,8 @@ class Sweep:
         """Series whose last ``capacity.stop_after`` recorded loads below the ``wave``'s all missed the
         lowest threshold (task success pooled over a load's completed runs). Only loads below it
         count: a resumed sweep with more seeds runs them at every load below the stop its series
-        reaches with them, not only where the fewer seeds had reached."""
+        reaches with them, not only where the fewer seeds had reached (and ``repeat_until``'s
+        extra seeds likewise, each round)."""
         rule = self.spec.capacity
         if rule.stop_after is None or not wave:
             return set()
