@@ -6,7 +6,7 @@ Choice rule: first, the lambdas whose policy loses no task that PDP 1 (``none``)
 1 % of the tasks (the evaluation's resolution: tasks still on the belt when an episode ends
 make a few tasks differ between policies anyway); if none qualifies, the one that loses fewest.
 Among those that qualify, the one that places most tasks in the overload hall (the hall of
-configs/sweeps/overload.yaml at 160 and 192 loops, past every policy's capacity, in the
+configs/sweeps/overload.yaml at 160 and 192 loops, at and past every policy's capacity, in the
 federation: there stale estimates raise the PDP, and a policy must not feed the collapse,
 which the one-loop environment's mean-field load does not show); with ``--no-hall``, the one
 that injects the least traffic. ``--ship`` copies that policy to domain/models/policy.onnx
@@ -34,8 +34,8 @@ from training.policy import train as T
 
 RESULTS = T.ROOT / "results" / "policy"
 OVERLOAD_SPEC = T.ROOT / "configs" / "sweeps" / "overload.yaml"
-# Past the capacity at 98 % of every shipped policy in that hall (heuristic 160, learned 128), and
-# below the load where the cap's least PDP itself overloads the cell (guard_min_pdp 0.1: about 200
+# At and past the capacity at 98 % of every shipped policy in that hall (heuristic 160, learned 128),
+# and below the load where the cap's least PDP itself overloads the cell (guard_min_pdp 0.1: about 200
 # loops); at 96 and 128 loops, the loads used before the cap was cut to the delivered share, every
 # policy now places 99.8-100 % and the lambdas cannot be told apart.
 HALL_LOADS = (160, 192)
