@@ -100,9 +100,11 @@ def test_the_cap_cuts_once_per_hold_never_below_its_minimum_and_recovers() -> No
     assert load.cap == pytest.approx(CUT)
     load.update(100_000, 0.08, 0.0)
     assert load.cap == pytest.approx(CUT)  # within the hold
-    load.update(50_000 + HOLD_US, 0.01, 0.5)
+    load.update(50_000 + HOLD_US, 0.01, 0.1 + 1e-9)
     assert load.cap == pytest.approx(CUT * CUT)  # the loss counts too
-    t = 50_000 + HOLD_US
+    load.update(50_000 + 2 * HOLD_US, 0.01, 0.3)  # 70 % of the frames sent under the cap of then
+    assert load.cap == pytest.approx(CUT * 0.7)  # (CUT, 600 ms ago) arrived: the cut goes there
+    t = 50_000 + 2 * HOLD_US
     for _ in range(40):
         t += HOLD_US
         load.update(t, 1.0, 1.0)
