@@ -168,7 +168,8 @@ class Level:
         self.proportional = proportional
         self.value = 1.0
         self._last_cut_us: int | None = None
-        # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first.
+        # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first
+        # (kept for a level steered by the loss).
         self._past: deque[tuple[int, float]] = deque()
 
     def _value_at(self, t_us: int) -> float:
@@ -194,9 +195,10 @@ class Level:
                 self._last_cut_us = now_us
         else:
             self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
-        self._past.append((now_us, self.value))
-        while len(self._past) > 1 and self._past[1][0] <= now_us - LOSS_LAG_US:
-            self._past.popleft()
+        if self.loss_target < 1.0:  # only a level steered by the loss looks back
+            self._past.append((now_us, self.value))
+            while len(self._past) > 1 and self._past[1][0] <= now_us - LOSS_LAG_US:
+                self._past.popleft()
 
 
 class LoadControl:
