@@ -45,6 +45,21 @@ HOLD_US = 300_000
 LOSS_LAG_US = 600_000
 DEEPEST_CUT = 0.5
 STEP = 0.01
+# Below its least PDP the cap sheds loops instead: with every loop at that PDP still past what the
+# cell delivers, a lower PDP for all would starve every loop of frames, where serving fewer
+# loops keeps those served at a PDP that places their tasks. The cap's level goes on down to
+# LEAST_SERVED of the least PDP, the share of the loops still served; the share climbs back as
+# the cap does, before any PDP rises.
+LEAST_SERVED = 0.05
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def served_rank(loop: int) -> float:
+    """Where ``loop`` (its index) ranks among the loops to serve, in [0, 1): a loop is served
+    while the share served exceeds it. The fractional part of the index times the golden ratio's
+    inverse: the loops served at a share are a subset of those served at any larger share (a
+    rising share sheds no loop), about the share of any run of indices (so spread over the hall)."""
+    return (loop * _GOLDEN) % 1.0
 
 
 @dataclass(frozen=True)
@@ -209,14 +224,21 @@ class LoadControl:
       nears saturation so that the policy's own PDP takes over (None: off);
     - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` (s) or the
       frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
-      delivers instead of every queue growing (None: off); never under ``min_cap``.
+      delivers instead of every queue growing (None: off); never under ``min_cap``;
+    - ``served``: the share of the loops served, 1 until the cap is at ``min_cap`` and the cell
+      still past capacity; then the cap's further cuts shed loops (``serves``) instead of
+      lowering every loop's PDP, down to LEAST_SERVED.
 
     Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
     co-design at all."""
 
     def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
+        self.min_cap = min_cap
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
-        self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
+        # One level for both the cap and the share served: the traffic it asks for is the
+        # level times the loops at PDP 1, whether every loop sends at it or a share at min_cap.
+        self._cap = (Level(cap_s, min_cap * LEAST_SERVED, LOSS_TARGET, proportional=True)
+                     if cap_s is not None else None)
 
     @property
     def fill(self) -> float:
@@ -226,7 +248,16 @@ class LoadControl:
     @property
     def cap(self) -> float:
         """The PDP no loop may exceed now (1: off)."""
-        return self._cap.value if self._cap is not None else 1.0
+        return max(self._cap.value, self.min_cap) if self._cap is not None else 1.0
+
+    @property
+    def served(self) -> float:
+        """The share of the loops served now (1: every loop)."""
+        return min(1.0, self._cap.value / self.min_cap) if self._cap is not None else 1.0
+
+    def serves(self, loop: int) -> bool:
+        """Whether ``loop`` (its index) is served now: its rank under the share served."""
+        return served_rank(loop) < self.served
 
     def update(self, now_us: int, queueing_s: float, loss: float) -> None:
         """One policy period ending at ``now_us`` (us) whose smoothed queueing delay is

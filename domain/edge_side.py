@@ -75,7 +75,7 @@ class CoDesign:
         # decided, and the sums of its levels over the policy periods.
         self._pdp: dict[int, list[float]] = {}
         self._periods = 0
-        self._levels = [0.0, 0.0, 0.0]  # fill, cap, queueing delay (s)
+        self._levels = [0.0, 0.0, 0.0, 0.0]  # fill, cap, queueing delay (s), share of loops served
 
     @classmethod
     def for_scenario(cls, sc: Scenario) -> CoDesign:
@@ -106,7 +106,7 @@ class CoDesign:
             self._period_us = now_us
             self.period(now_us)
         state = self.state(loop, now_us, tracker, last_frame_us)
-        qos = self.apply(state, self.policy.decide(state))
+        qos = self.apply(loop, state, self.policy.decide(state))
         metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
         acc = self._pdp.setdefault(loop, [0.0, 0])
         acc[0] += qos.pdp
@@ -121,10 +121,12 @@ class CoDesign:
             self.load.update(now_us, queueing_s, loss)
             metrics.PDP_FILL.set(self.load.fill)
             metrics.PDP_CAP.set(self.load.cap)
+            metrics.LOOPS_SERVED.set(self.load.served)
         metrics.QUEUEING_DELAY.set(queueing_s)
         self._periods += 1
         for i, level in enumerate(self.levels()[:3]):
             self._levels[i] += level
+        self._levels[3] += self.load.served if self.load is not None else 1.0
 
     def levels(self) -> tuple[float, float, float, float]:
         """The load control's fill and cap (PDP; 1 and 1 without load control), and the cell's
@@ -140,20 +142,22 @@ class CoDesign:
 
     def summary(self) -> dict[str, Any]:
         """What this Edge saw and decided over the run: the mean PDP of its loops, the means of
-        its levels over the policy periods (fill, cap, queueing delay in s) and their last
-        values."""
+        its levels over the policy periods (fill, cap, queueing delay in s, share of the loops
+        served) and their last values."""
         fill, cap, queueing_s, loss = self.levels()
         n = self._periods
         return {"loops": self.loops, "mean_pdp": self.mean_pdp(),
                 "mean_fill": self._levels[0] / n if n else None,
                 "mean_cap": self._levels[1] / n if n else None,
                 "mean_queueing_delay_s": self._levels[2] / n if n else None,
-                "fill": fill, "cap": cap, "queueing_delay_s": queueing_s, "frame_loss": loss}
+                "mean_served": self._levels[3] / n if n else None,
+                "fill": fill, "cap": cap, "queueing_delay_s": queueing_s, "frame_loss": loss,
+                "served": self.load.served if self.load is not None else 1.0}
 
-    def apply(self, state: LoopState, qos: Qos) -> Qos:
-        """``qos``, the policy's decision for the loop in ``state``, bounded by the safety floor
+    def apply(self, loop: int, state: LoopState, qos: Qos) -> Qos:
+        """``qos``, the policy's decision for ``loop`` in ``state``, bounded by the safety floor
         and the load control, reduced to the ablation's ``controls``."""
-        pdp = bounded_pdp(state, qos.pdp, self.limits, self.load)
+        pdp = bounded_pdp(loop, state, qos.pdp, self.limits, self.load)
         if self.controls == "pdp":
             return Qos(pdp, None)
         if self.controls == "budget":
@@ -212,11 +216,14 @@ class Edges:
                 "edges": edges, "gnbs": gnbs}
 
 
-def bounded_pdp(state: LoopState, pdp: float, limits: FloorLimits | None, load: LoadControl | None) -> float:
-    """``pdp`` of the loop in ``state`` raised to the safety floor (``limits``; None: no floor)
+def bounded_pdp(loop: int, state: LoopState, pdp: float, limits: FloorLimits | None,
+                load: LoadControl | None) -> float:
+    """``pdp`` of ``loop`` in ``state`` raised to the safety floor (``limits``; None: no floor)
     and to the fill of the load control ``load`` (PDP 1 while the cell has headroom), then capped
-    by its cap (None: neither). Past capacity the cap wins: a floor raised by stale estimates
-    must not feed the congestion that made them stale."""
+    by its cap (None: neither); 0 for a loop the load control sheds. Past capacity the cap wins:
+    a floor raised by stale estimates must not feed the congestion that made them stale."""
+    if load is not None and not load.serves(loop):
+        return 0.0
     if limits is not None:
         pdp = max(pdp, safety_floor(state, limits))
     if load is not None:

@@ -42,6 +42,7 @@ QUEUEING_DELAY = Gauge("cosim_edge_queueing_delay_seconds",
                        "Smoothed queueing delay of the frames the Edge receives (delay above each loop's smallest)")
 PDP_FILL = Gauge("cosim_edge_pdp_fill", "PDP every co-design loop may use while the radio cell has headroom")
 PDP_CAP = Gauge("cosim_edge_pdp_cap", "PDP no co-design loop may exceed (the congestion guard)")
+LOOPS_SERVED = Gauge("cosim_edge_loops_served", "Share of the Edge's loops the congestion guard serves (the others shed)")
 
 
 def observe_many(histogram: Any, value: float, count: int) -> None:

@@ -13,6 +13,7 @@ from domain.congestion import (
     CUT,
     HOLD_US,
     IDLE_LINK,
+    LEAST_SERVED,
     LOOP_ALPHA,
     LOST_AFTER_US,
     STEP,
@@ -91,9 +92,9 @@ def test_a_track_about_to_leave_its_gate_asks_for_every_frame() -> None:
     assert safety_floor(stale, LIMITS) == 1.0
 
 
-def test_the_cap_cuts_once_per_hold_never_below_its_minimum_and_recovers() -> None:
+def test_the_cap_cuts_once_per_hold_never_below_its_minimum_then_sheds_loops_and_recovers() -> None:
     load = LoadControl(None, 0.04, 0.1)
-    assert load.fill == 0.0
+    assert load.fill == 0.0 and load.served == 1.0
     load.update(0, 0.02, 0.0)
     assert load.cap == 1.0  # under the target: nothing changes
     load.update(50_000, 0.08, 0.0)
@@ -108,21 +109,27 @@ def test_the_cap_cuts_once_per_hold_never_below_its_minimum_and_recovers() -> No
     for _ in range(40):
         t += HOLD_US
         load.update(t, 1.0, 1.0)
-    assert load.cap == 0.1
+    assert load.cap == 0.1 and load.served == pytest.approx(LEAST_SERVED)  # loops shed instead
+    t += 50_000
+    load.update(t, 0.01, 0.0)
+    assert load.cap == 0.1 and load.served == pytest.approx(LEAST_SERVED * (1 + STEP))  # back first
+    while load.served < 1.0:
+        t += 50_000
+        load.update(t, 0.01, 0.0)
     load.update(t + 50_000, 0.01, 0.0)
-    assert load.cap == pytest.approx(0.1 * (1 + STEP))  # by STEP of its value
+    assert load.cap == pytest.approx(0.1 * (1 + STEP), rel=0.02)  # then the cap, by STEP of its value
 
 
 def test_the_fill_gives_pdp_1_while_the_cell_has_headroom_and_yields_near_saturation() -> None:
     load = LoadControl(0.01, 0.04, 0.1)
     st = state(0.3, [part(-0.45, 0.3)], last_spawn_us=NOW - 1_000_000)
     load.update(0, 0.002, 0.0)
-    assert bounded_pdp(st, 0.1, LIMITS, load) == 1.0
+    assert bounded_pdp(0, st, 0.1, LIMITS, load) == 1.0
     load.update(50_000, 0.02, 0.0)  # past the headroom target, under the cap's
     assert load.fill == pytest.approx(CUT) and load.cap == 1.0
     for k in range(2, 12):
         load.update(k * HOLD_US, 0.02, 0.0)
-    assert bounded_pdp(st, 0.1, LIMITS, load) == pytest.approx(0.4)  # the floor's, no more
+    assert bounded_pdp(0, st, 0.1, LIMITS, load) == pytest.approx(0.4)  # the floor's, no more
 
 
 def test_the_monitor_measures_queueing_above_each_loops_base_delay_and_loss_by_timeout() -> None:
@@ -161,8 +168,8 @@ def test_past_capacity_the_cap_wins_over_the_floor() -> None:
     while load.cap > 0.3:
         load.update(t, 1.0, 0.0)
         t += HOLD_US
-    assert bounded_pdp(st, 0.1, LIMITS, None) == pytest.approx(0.4)
+    assert bounded_pdp(0, st, 0.1, LIMITS, None) == pytest.approx(0.4)
     cap = math.ceil(round(load.cap / 0.05, 6)) * 0.05  # signalled in steps of 0.05, rounded up
     assert cap < 0.4
-    assert bounded_pdp(st, 0.1, LIMITS, load) == pytest.approx(cap)
-    assert Qos(bounded_pdp(st, 1.0, None, load), None).pdp == pytest.approx(cap)
+    assert bounded_pdp(0, st, 0.1, LIMITS, load) == pytest.approx(cap)
+    assert Qos(bounded_pdp(0, st, 1.0, None, load), None).pdp == pytest.approx(cap)

@@ -21,6 +21,7 @@ from domain.congestion import (
     Level,
     LoadControl,
     UplinkMonitor,
+    served_rank,
 )
 
 PERIOD_US = 50_000
@@ -110,8 +111,8 @@ def cell(loops: int, capacity: int, periods: int, seq: bool) -> tuple[LoadContro
         now = k * PERIOD_US
         load.update(now, *mon.period(now))
         frames = []
-        for i in range(loops):  # 1.5 frames a period at the cap (a policy asking PDP 1)
-            credit[i] += 1.5 * load.cap
+        for i in range(loops):  # 1.5 frames a period at the cap (a policy asking PDP 1), if served
+            credit[i] += 1.5 * load.cap * load.serves(i)
             while credit[i] >= 1.0:
                 credit[i] -= 1.0
                 frames.append((i, sent[i]))
@@ -178,6 +179,31 @@ def test_a_level_keeps_what_was_in_force_a_loss_lag_ago_over_irregular_periods()
         odd = Level(0.06, 0.1, LOSS_TARGET, proportional=True)
         odd.update(0, 0.1, bad)
         assert odd.value == pytest.approx(DEEPEST_CUT)
+
+
+def test_where_every_loop_at_the_least_cap_overloads_the_cell_the_cap_sheds_loops() -> None:
+    # 400 loops at the least cap, 0.1, offer 60 frames a period to a cell that carries 29: shed
+    # loops send nothing, the others stay at 0.1, and the injected traffic near what is carried
+    # (a little under it: a served loop sends a frame every 7 periods, so what a share injects
+    # is lumpy, and the loss it causes cuts it back).
+    load, injected = cell(400, 29, 500, seq=True)
+    late = injected[200:]  # from 20x what the cell carries, the first cuts undershoot
+    assert 0.8 * 29 < sum(late) / len(late) < 29 / (1 - LOSS_TARGET) and max(late) < 1.5 * 29
+    assert load.cap == 0.1 and 0.35 < load.served < 0.65
+    served = [i for i in range(400) if load.serves(i)]
+    assert abs(len(served) - load.served * 400) <= 3  # the share, spread over the loops:
+    assert all(abs(sum(1 for i in served if 100 * q <= i < 100 * (q + 1)) - load.served * 100) <= 3
+               for q in range(4))
+
+
+def test_a_loop_served_at_a_share_is_served_at_every_larger_share() -> None:
+    ranks = [served_rank(i) for i in range(1000)]
+    assert ranks[0] == 0.0 and all(0.0 <= r < 1.0 for r in ranks)  # loop 0 is always served
+    for share in (0.05, 0.1, 0.3, 0.5, 0.9):
+        assert abs(sum(r < share for r in ranks) - 1000 * share) <= 3
+    shares = [0.1, 0.2, 0.5, 0.8]  # nested: a rising share adds loops, never swaps them
+    sets = [{i for i, r in enumerate(ranks) if r < s} for s in shares]
+    assert all(a < b for a, b in zip(sets, sets[1:], strict=False))
 
 
 def test_below_capacity_the_sequence_changes_nothing() -> None:

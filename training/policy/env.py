@@ -122,7 +122,7 @@ class PickLoopEnv(gym.Env):
     def step_qos(self, qos: Qos) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``qos`` for one policy period (any policy's QoS, not only the action set's)."""
         self.codesign.period(self.t_us)
-        qos = self.codesign.apply(self.loop_state(), qos)
+        qos = self.codesign.apply(0, self.loop_state(), qos)  # loop 0: never shed
         budget_ms = None if qos.pdb_us is None else qos.pdb_us / 1000
         load = self.load_mbps()
         self.qos = qos
@@ -133,7 +133,7 @@ class PickLoopEnv(gym.Env):
         dt_s = self.period_us / 1e6
         price = congestion_price(load / self.net.capacity_mbps)
         cost = qos.pdp * price * (1.0 - self.net.byte_discard(load, budget_ms)) * dt_s
-        self.pdp_bar += (qos.pdp - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
+        self.pdp_bar += (qos.pdp * self.served() - self.pdp_bar) * min(1.0, dt_s / LOAD_TAU_S)
         ended = self.world.take_ended(self.world.t_us)
         placed = sum(1 for t in ended if t["outcome"] == "placed")
         missed = sum(1 for t in ended if t["outcome"] == "missed")
@@ -166,6 +166,10 @@ class PickLoopEnv(gym.Env):
                 "mean_budget_ms": st["budget_ms_sum"] / n, "mean_load_mbps": st["load_sum"] / n,
                 "cost": st["cost"], "frames": st["frames"], "frames_kept": st["frames_kept"],
                 "frames_delivered": st["frames_delivered"], "holds": self.ctl.holds}
+
+    def served(self) -> float:
+        """The share of the cell's loops the load control serves (the others send nothing)."""
+        return self.codesign.load.served if self.codesign.load is not None else 1.0
 
     def load_mbps(self) -> float:
         """Offered uplink load of the radio cell (mean field), Mbit/s."""
