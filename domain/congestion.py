@@ -45,11 +45,13 @@ HOLD_US = 300_000
 LOSS_LAG_US = 600_000
 DEEPEST_CUT = 0.5
 STEP = 0.01
-# Below its least PDP the cap sheds loops instead: with every loop at that PDP still past what the
-# cell delivers, a lower PDP for all would starve every loop of frames, where serving fewer
-# loops keeps those served at a PDP that places their tasks. The cap's level goes on down to
-# LEAST_SERVED of the least PDP, the share of the loops still served; the share climbs back as
-# the cap does, before any PDP rises.
+# Where every loop at the cap's least PDP still overloads the cell, the load control sheds loops
+# instead of lowering that PDP: a lower PDP for all would starve every loop of frames, where
+# serving fewer loops keeps those served at a PDP that places their tasks. It sheds only once the
+# cap has sat at its least for LOSS_LAG_US (the loss it reads is then of frames sent at it) and
+# more than LOSS_TARGET of the frames are lost, with the cap's rule (cut, climb by STEP of its
+# value), down to LEAST_SERVED of the loops; while any loop is shed the cap holds, and the loops
+# come back before any PDP rises.
 LEAST_SERVED = 0.05
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -225,9 +227,9 @@ class LoadControl:
     - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` (s) or the
       frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
       delivers instead of every queue growing (None: off); never under ``min_cap``;
-    - ``served``: the share of the loops served, 1 until the cap is at ``min_cap`` and the cell
-      still past capacity; then the cap's further cuts shed loops (``serves``) instead of
-      lowering every loop's PDP, down to LEAST_SERVED.
+    - ``served``: the share of the loops served (``serves``), 1 until every loop at
+      ``min_cap`` still overloads the cell, then cut and raised by the frame loss as the cap is,
+      down to LEAST_SERVED; the loops not served send nothing.
 
     Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
     co-design at all."""
@@ -235,10 +237,9 @@ class LoadControl:
     def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
         self.min_cap = min_cap
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
-        # One level for both the cap and the share served: the traffic it asks for is the
-        # level times the loops at PDP 1, whether every loop sends at it or a share at min_cap.
-        self._cap = (Level(cap_s, min_cap * LEAST_SERVED, LOSS_TARGET, proportional=True)
-                     if cap_s is not None else None)
+        self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
+        self._served = Level(math.inf, LEAST_SERVED, LOSS_TARGET, proportional=True)  # by the loss alone
+        self._least_since_us: int | None = None  # since when the cap has been at min_cap
 
     @property
     def fill(self) -> float:
@@ -248,12 +249,12 @@ class LoadControl:
     @property
     def cap(self) -> float:
         """The PDP no loop may exceed now (1: off)."""
-        return max(self._cap.value, self.min_cap) if self._cap is not None else 1.0
+        return self._cap.value if self._cap is not None else 1.0
 
     @property
     def served(self) -> float:
         """The share of the loops served now (1: every loop)."""
-        return min(1.0, self._cap.value / self.min_cap) if self._cap is not None else 1.0
+        return self._served.value
 
     def serves(self, loop: int) -> bool:
         """Whether ``loop`` (its index) is served now: its rank under the share served."""
@@ -264,5 +265,15 @@ class LoadControl:
         ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         if self._fill is not None:
             self._fill.update(now_us, queueing_s, 1.0)
-        if self._cap is not None:
+        if self._cap is None:
+            return
+        least = self._least_since_us
+        if self._served.value < 1.0 or (least is not None and now_us - least >= LOSS_LAG_US
+                                        and loss > LOSS_TARGET):
+            self._served.update(now_us, queueing_s, loss)
+        else:
             self._cap.update(now_us, queueing_s, loss)
+        if self._cap.value > self.min_cap:
+            self._least_since_us = None
+        elif least is None:
+            self._least_since_us = now_us

@@ -120,6 +120,29 @@ def test_the_cap_cuts_once_per_hold_never_below_its_minimum_then_sheds_loops_and
     assert load.cap == pytest.approx(0.1 * (1 + STEP), rel=0.02)  # then the cap, by STEP of its value
 
 
+def test_loops_are_shed_only_once_the_cap_has_sat_at_its_least_a_loss_lag_and_frames_are_lost() -> None:
+    load = LoadControl(None, 0.04, 0.1)
+    t = 0
+    while load.cap > 0.1:  # the delay alone brings the cap down
+        load.update(t, 1.0, 0.0)
+        t += HOLD_US
+    for _ in range(10):
+        load.update(t, 1.0, 0.0)
+        t += HOLD_US
+    assert load.served == 1.0  # and sheds nothing: the cell carries what it is sent
+    load.update(t, 1.0, 0.5)  # half the frames sent at the least cap are lost
+    assert load.cap == 0.1 and load.served == pytest.approx(0.5)
+    fresh = LoadControl(None, 0.04, 0.1)
+    t = 0
+    while fresh.cap > 0.1:
+        fresh.update(t, 1.0, 1.0)
+        t += HOLD_US
+    fresh.update(t, 1.0, 1.0)  # the loss read now is of frames sent above the least cap
+    assert fresh.served == 1.0
+    fresh.update(t + HOLD_US, 1.0, 1.0)
+    assert fresh.served < 1.0
+
+
 def test_the_fill_gives_pdp_1_while_the_cell_has_headroom_and_yields_near_saturation() -> None:
     load = LoadControl(0.01, 0.04, 0.1)
     st = state(0.3, [part(-0.45, 0.3)], last_spawn_us=NOW - 1_000_000)
