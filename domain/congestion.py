@@ -45,13 +45,19 @@ HOLD_US = 300_000
 LOSS_LAG_US = 600_000
 DEEPEST_CUT = 0.5
 STEP = 0.01
-# Where every loop at the cap's least PDP still overloads the cell, the load control sheds loops
-# instead of lowering that PDP: a lower PDP for all would starve every loop of frames, where
-# serving fewer loops keeps those served at a PDP that places their tasks. It sheds only once the
-# cap has sat at its least for LOSS_LAG_US (the loss it reads is then of frames sent at it) and
-# more than LOSS_TARGET of the frames are lost, with the cap's rule (cut, climb by STEP of its
-# value), down to LEAST_SERVED of the loops; while any loop is shed the cap holds, and the loops
-# come back before any PDP rises.
+# Where every loop at the cap's least PDP still overloads the cell well past its capacity, the
+# load control sheds loops instead of lowering that PDP: a lower PDP for all would starve every
+# loop of frames, where serving fewer loops keeps those served at a PDP that places their tasks.
+# Only well past: a loss spread over every loop costs fewer tasks than shedding some (at 192
+# loops of the default cell about 15 % of the frames are lost at the least cap and 90 % of the
+# tasks placed; shedding to a loss of LOSS_TARGET placed 79 %), while at 240 loops some 30 % are
+# lost, estimates go stale and 29 % are placed. So loops are shed only once the cap has sat at its
+# least for SHED_AFTER_US (the loss read then is of frames sent at it, past the start's
+# transient) and more than SHED_LOSS_TARGET of the frames are lost, with the cap's rule (cut,
+# climb by STEP of its value), down to LEAST_SERVED of the loops; while any loop is shed the cap
+# holds, and the loops come back before any PDP rises.
+SHED_LOSS_TARGET = 0.25
+SHED_AFTER_US = 1_000_000
 LEAST_SERVED = 0.05
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -228,8 +234,8 @@ class LoadControl:
       frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
       delivers instead of every queue growing (None: off); never under ``min_cap``;
     - ``served``: the share of the loops served (``serves``), 1 until every loop at
-      ``min_cap`` still overloads the cell, then cut and raised by the frame loss as the cap is,
-      down to LEAST_SERVED; the loops not served send nothing.
+      ``min_cap`` still loses more than SHED_LOSS_TARGET of its frames, then cut and raised by
+      the frame loss as the cap is, down to LEAST_SERVED; the loops not served send nothing.
 
     Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
     co-design at all."""
@@ -238,7 +244,7 @@ class LoadControl:
         self.min_cap = min_cap
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
         self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
-        self._served = Level(math.inf, LEAST_SERVED, LOSS_TARGET, proportional=True)  # by the loss alone
+        self._served = Level(math.inf, LEAST_SERVED, SHED_LOSS_TARGET, proportional=True)  # the loss alone
         self._least_since_us: int | None = None  # since when the cap has been at min_cap
 
     @property
@@ -268,8 +274,8 @@ class LoadControl:
         if self._cap is None:
             return
         least = self._least_since_us
-        if self._served.value < 1.0 or (least is not None and now_us - least >= LOSS_LAG_US
-                                        and loss > LOSS_TARGET):
+        if self._served.value < 1.0 or (least is not None and now_us - least >= SHED_AFTER_US
+                                        and loss > SHED_LOSS_TARGET):
             self._served.update(now_us, queueing_s, loss)
         else:
             self._cap.update(now_us, queueing_s, loss)

@@ -16,6 +16,8 @@ from domain.congestion import (
     LEAST_SERVED,
     LOOP_ALPHA,
     LOST_AFTER_US,
+    SHED_AFTER_US,
+    SHED_LOSS_TARGET,
     STEP,
     LinkEstimate,
     LoadControl,
@@ -120,7 +122,7 @@ def test_the_cap_cuts_once_per_hold_never_below_its_minimum_then_sheds_loops_and
     assert load.cap == pytest.approx(0.1 * (1 + STEP), rel=0.02)  # then the cap, by STEP of its value
 
 
-def test_loops_are_shed_only_once_the_cap_has_sat_at_its_least_a_loss_lag_and_frames_are_lost() -> None:
+def test_loops_are_shed_only_once_the_cap_has_sat_at_its_least_and_many_frames_are_still_lost() -> None:
     load = LoadControl(None, 0.04, 0.1)
     t = 0
     while load.cap > 0.1:  # the delay alone brings the cap down
@@ -130,16 +132,21 @@ def test_loops_are_shed_only_once_the_cap_has_sat_at_its_least_a_loss_lag_and_fr
         load.update(t, 1.0, 0.0)
         t += HOLD_US
     assert load.served == 1.0  # and sheds nothing: the cell carries what it is sent
-    load.update(t, 1.0, 0.5)  # half the frames sent at the least cap are lost
+    load.update(t, 1.0, SHED_LOSS_TARGET)  # a loss spread over every loop: still none shed
+    assert load.served == 1.0
+    load.update(t + 50_000, 1.0, 0.5)  # half the frames sent at the least cap are lost
     assert load.cap == 0.1 and load.served == pytest.approx(0.5)
     fresh = LoadControl(None, 0.04, 0.1)
     t = 0
     while fresh.cap > 0.1:
         fresh.update(t, 1.0, 1.0)
         t += HOLD_US
-    fresh.update(t, 1.0, 1.0)  # the loss read now is of frames sent above the least cap
-    assert fresh.served == 1.0
-    fresh.update(t + HOLD_US, 1.0, 1.0)
+    least = t - HOLD_US
+    while t < least + SHED_AFTER_US:  # the loss read is of the start's, not of the least cap
+        fresh.update(t, 1.0, 1.0)
+        assert fresh.served == 1.0
+        t += 50_000
+    fresh.update(t, 1.0, 1.0)
     assert fresh.served < 1.0
 
 
