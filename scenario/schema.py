@@ -422,7 +422,8 @@ class PolicyConfig(Strict):
     guard_delay_ms: float = Field(
         default=60.0, gt=0, le=1000, description="`guard`: the cap falls while the smoothed queueing "
         "delay of the frames at the Edge exceeds this, ms")
-    guard_min_pdp: float = Field(default=0.1, gt=0, le=1, description="`guard`: the cap never falls below this")
+    guard_min_pdp: float = Field(default=0.1, gt=0, le=1, description="`guard`: the cap never falls below this; "
+                                 "past it the guard sheds loops instead")
 
 
 # TS 38.331 TimeToTrigger (ms) and FilterCoefficient (k of the layer-3 filter) values.
