@@ -34,10 +34,10 @@ from training.policy import train as T
 
 RESULTS = T.ROOT / "results" / "policy"
 OVERLOAD_SPEC = T.ROOT / "configs" / "sweeps" / "overload.yaml"
-# At and past the capacity at 98 % of every shipped policy in that hall (heuristic 160, learned
-# 128), and below the load where the cap's least PDP itself overloads the cell (guard_min_pdp
-# 0.1: about 200 loops). At 96 and 128 loops, used before the cap was cut to the delivered
-# share, every policy now places 99.8-100 % and the lambdas cannot be told apart.
+# At and past the capacity at 98 % of every shipped policy in that hall (docs/policy.md, "Past
+# capacity"), and below the load where the cap's least PDP itself overloads the cell and loops
+# are shed (guard_min_pdp 0.1: about 200 loops). At 96 and 128 loops, used before the cap was
+# cut to the delivered share, every policy places 99.8-100 % and the lambdas cannot be told apart.
 HALL_LOADS = (160, 192)
 HALL_SEEDS = (1, 2)
 LOSS_TOLERANCE = 0.01  # tasks lost vs none, as a fraction of the tasks, still counted as none
