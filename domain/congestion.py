@@ -241,7 +241,6 @@ class LoadControl:
     co-design at all."""
 
     def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
-        self.min_cap = min_cap
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
         self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
         self._served = Level(math.inf, LEAST_SERVED, SHED_LOSS_TARGET, proportional=True)  # the loss alone
@@ -279,7 +278,7 @@ class LoadControl:
             self._served.update(now_us, queueing_s, loss)
         else:
             self._cap.update(now_us, queueing_s, loss)
-        if self._cap.value > self.min_cap:
+        if self._cap.value > self._cap.low:
             self._least_since_us = None
         elif least is None:
             self._least_since_us = now_us

@@ -126,13 +126,18 @@ class CoDesign:
         self._periods += 1
         for i, level in enumerate(self.levels()[:3]):
             self._levels[i] += level
-        self._levels[3] += self.load.served if self.load is not None else 1.0
+        self._levels[3] += self.served
 
     def levels(self) -> tuple[float, float, float, float]:
         """The load control's fill and cap (PDP; 1 and 1 without load control), and the cell's
         smoothed queueing delay (s) and frame loss (share) as this Edge sees them now."""
         fill, cap = (self.load.fill, self.load.cap) if self.load is not None else (1.0, 1.0)
         return fill, cap, self.monitor.cell_queueing_s, self.monitor.cell_loss
+
+    @property
+    def served(self) -> float:
+        """The share of the loops the load control serves now (1 without load control)."""
+        return self.load.served if self.load is not None else 1.0
 
     def mean_pdp(self, loops: Iterable[int] | None = None) -> float | None:
         """The mean of the PDPs decided for ``loops`` (None: every loop) so far; None: none."""
@@ -152,7 +157,7 @@ class CoDesign:
                 "mean_queueing_delay_s": self._levels[2] / n if n else None,
                 "mean_served": self._levels[3] / n if n else None,
                 "fill": fill, "cap": cap, "queueing_delay_s": queueing_s, "frame_loss": loss,
-                "served": self.load.served if self.load is not None else 1.0}
+                "served": self.served}
 
     def apply(self, loop: int, state: LoopState, qos: Qos) -> Qos:
         """``qos``, the policy's decision for ``loop`` in ``state``, bounded by the safety floor
