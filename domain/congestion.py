@@ -59,6 +59,14 @@ STEP = 0.01
 SHED_LOSS_TARGET = 0.25
 SHED_AFTER_US = 1_000_000
 LEAST_SERVED = 0.05
+# A run's Edge knows nothing of its cell's capacity yet: its cap starts low (the policy's
+# `guard_start_pdp`) and doubles every period until the first sign of congestion (TCP's slow
+# start, RFC 5681). Starting every loop at PDP 1 puts a cell past capacity into overload for the
+# half second its loss takes to show; the UEs then discard the tail of every frame at its delay
+# budget, so hardly a frame completes (at 40 loops of a 0.5 m/s cell, a camera's first to
+# complete after 0.08 s was captured at 0.71 s) and parts landing meanwhile on a fast belt
+# cross unseen. Below capacity the cap reaches 1
+# within four periods.
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
@@ -182,22 +190,27 @@ class Level:
     value). A level steered by the loss is cut to the lesser of CUT of its value and the share
     of the frames that arrive times the level in force LOSS_LAG_US before, when they were sent
     (after a climb, that level is the last one known to be carried), never below DEEPEST_CUT of
-    its value."""
+    its value. A level that begins under 1 (``start``) doubles every period instead until it is
+    first cut or reaches 1 (a slow start)."""
 
-    def __init__(self, target_s: float, low: float, loss_target: float = 1.0, proportional: bool = False) -> None:
+    def __init__(self, target_s: float, low: float, loss_target: float = 1.0, proportional: bool = False,
+                 start: float = 1.0) -> None:
         self.target_s = target_s
         self.low = low
         self.loss_target = loss_target
         self.proportional = proportional
-        self.value = 1.0
+        self.value = start
+        self._start = start
+        self.starting = start < 1.0
         self._last_cut_us: int | None = None
         # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first
         # (kept for a level steered by the loss).
         self._past: deque[tuple[int, float]] = deque()
 
     def _value_at(self, t_us: int) -> float:
-        """The level in force at ``t_us`` (us), at most LOSS_LAG_US ago (1 before the first period)."""
-        before = 1.0
+        """The level in force at ``t_us`` (us), at most LOSS_LAG_US ago (its start before the
+        first period)."""
+        before = self._start
         for t, v in self._past:
             if t > t_us:
                 break
@@ -209,6 +222,7 @@ class Level:
         cell's queueing delay ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         loss = 1.0 if math.isnan(loss) else min(1.0, max(0.0, loss))  # a share; NaN: nothing known to arrive
         if queueing_s > self.target_s or loss > self.loss_target:
+            self.starting = False
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 cut = self.value * CUT
                 if self.loss_target < 1.0:  # to what the cell delivers (LOSS_LAG_US)
@@ -216,6 +230,9 @@ class Level:
                     cut = min(cut, max(self.value * DEEPEST_CUT, delivered))
                 self.value = max(self.low, cut)
                 self._last_cut_us = now_us
+        elif self.starting:
+            self.value = min(1.0, 2.0 * self.value)
+            self.starting = self.value < 1.0
         else:
             self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
         if self.loss_target < 1.0:  # only a level steered by the loss looks back
@@ -230,9 +247,10 @@ class LoadControl:
     - ``fill``: the PDP every loop may use for free, 1 while the cell's queueing delay stays under
       ``headroom_s`` (s; traffic costs nothing while the cell has headroom), falling as the cell
       nears saturation so that the policy's own PDP takes over (None: off);
-    - ``cap``: the PDP no loop may exceed, 1 until the queueing delay passes ``cap_s`` (s) or the
-      frame loss LOSS_TARGET, then cut so that the injected traffic stays near what the cell
-      delivers instead of every queue growing (None: off); never under ``min_cap``;
+    - ``cap``: the PDP no loop may exceed: from ``start_cap``, doubled every period up to 1 (a
+      slow start), until the queueing delay passes ``cap_s`` (s) or the frame loss LOSS_TARGET,
+      then cut so that the injected traffic stays near what the cell delivers instead of every
+      queue growing (None: off); never under ``min_cap``;
     - ``served``: the share of the loops served (``serves``), 1 until every loop at
       ``min_cap`` still loses more than SHED_LOSS_TARGET of its frames, then cut and raised by
       the frame loss as the cap is, down to LEAST_SERVED; the loops not served send nothing.
@@ -240,9 +258,11 @@ class LoadControl:
     Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
     co-design at all."""
 
-    def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float) -> None:
+    def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float,
+                 start_cap: float = 1.0) -> None:
         self._fill = Level(headroom_s, 0.0) if headroom_s is not None else None
-        self._cap = Level(cap_s, min_cap, LOSS_TARGET, proportional=True) if cap_s is not None else None
+        self._cap = (Level(cap_s, min_cap, LOSS_TARGET, proportional=True, start=max(start_cap, min_cap))
+                     if cap_s is not None else None)
         self._served = Level(math.inf, LEAST_SERVED, SHED_LOSS_TARGET, proportional=True)  # the loss alone
         self._least_since_us: int | None = None  # since when the cap has been at min_cap
 

@@ -241,7 +241,8 @@ def load_control(cfg: PolicyConfig) -> LoadControl | None:
     if not cfg.headroom and not cfg.guard:
         return None
     return LoadControl(cfg.headroom_delay_ms / 1000 if cfg.headroom else None,
-                       cfg.guard_delay_ms / 1000 if cfg.guard else None, cfg.guard_min_pdp)
+                       cfg.guard_delay_ms / 1000 if cfg.guard else None, cfg.guard_min_pdp,
+                       cfg.guard_start_pdp)
 
 
 def default_limits(cfg: PolicyConfig, sc: Scenario | None = None) -> FloorLimits:

@@ -424,6 +424,17 @@ class PolicyConfig(Strict):
         "delay of the frames at the Edge exceeds this, ms")
     guard_min_pdp: float = Field(default=0.1, gt=0, le=1, description="`guard`: the cap never falls below this; "
                                  "past it the guard sheds loops instead")
+    guard_start_pdp: float = Field(
+        default=0.1, gt=0, le=1, description="`guard`: the cap a run starts from, doubled every policy "
+        "period until the first sign of congestion or 1 (a slow start: the Edge knows nothing of "
+        "the cell's capacity yet); at least `guard_min_pdp`; 1: every loop starts at PDP 1")
+
+    @model_validator(mode="after")
+    def _start_above_least(self) -> PolicyConfig:
+        if self.guard_start_pdp < self.guard_min_pdp:
+            raise ValueError(f"guard_start_pdp ({self.guard_start_pdp:g}) must be at least "
+                             f"guard_min_pdp ({self.guard_min_pdp:g}): the cap never falls below that")
+        return self
 
 
 # TS 38.331 TimeToTrigger (ms) and FilterCoefficient (k of the layer-3 filter) values.

@@ -31,12 +31,13 @@ W = 1000
 
 
 def hall_scenario(**edge: Any) -> Scenario:
-    """Four abstract loops in a hall of two gNBs (model timing, the heuristic policy)."""
+    """Four abstract loops in a hall of two gNBs (model timing, the heuristic policy, no slow
+    start: the Edges' mean levels then tell their cells' loads apart)."""
     return parse_scenario({
         "name": "edges", "seed": 2, "duration_s": 0.5, "loops": 4, "detailed_loops": 0,
         "hall": {"work_cells_per_row": 4, "work_cell_pitch_m": [4.0, 8.0],
                  "inf_layout": {"gnb_count": 2}},
-        "policy": {"name": "heuristic"}, "edge": edge,
+        "policy": {"name": "heuristic", "guard_start_pdp": 1.0}, "edge": edge,
         "nodes": {"camera": MODEL, "edge": MODEL, "robot": MODEL},
     })
 

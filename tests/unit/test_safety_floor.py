@@ -122,6 +122,31 @@ def test_the_cap_cuts_once_per_hold_never_below_its_minimum_then_sheds_loops_and
     assert load.cap == pytest.approx(0.1 * (1 + STEP), rel=0.02)  # then the cap, by STEP of its value
 
 
+def test_the_cap_starts_low_and_doubles_until_the_first_sign_of_congestion() -> None:
+    load = LoadControl(None, 0.04, 0.1, start_cap=0.1)
+    assert load.cap == 0.1
+    caps = []
+    for k in range(5):  # an idle cell: 0.2, 0.4, 0.8, then 1, where the start ends
+        load.update(50_000 * k, 0.0, 0.0)
+        caps.append(load.cap)
+    assert caps == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0])
+    load = LoadControl(None, 0.04, 0.1, start_cap=0.1)
+    load.update(0, 0.0, 0.0)
+    load.update(50_000, 0.0, 0.0)  # 0.4
+    load.update(100_000, 0.0, 0.5)  # half the frames lost: the start ends in a cut ...
+    assert load.cap == pytest.approx(0.2)  # ... to what arrives of the start's 0.1 (floored at half)
+    load.update(150_000, 0.0, 0.0)
+    assert load.cap == pytest.approx(0.2 * (1 + STEP))  # then the usual climb
+
+
+def test_the_slow_start_is_a_setting_at_least_the_least_cap() -> None:
+    assert PolicyConfig(name="heuristic").guard_start_pdp == 0.1
+    assert CoDesign(PolicyConfig(name="heuristic"), 0.3).load.cap == 0.1
+    assert CoDesign(PolicyConfig(name="heuristic", guard_start_pdp=1.0), 0.3).load.cap == 1.0
+    with pytest.raises(ValueError, match="guard_start_pdp .* must be at least guard_min_pdp"):
+        PolicyConfig(name="heuristic", guard_start_pdp=0.1, guard_min_pdp=0.2)
+
+
 def test_loops_are_shed_only_once_the_cap_has_sat_at_its_least_and_many_frames_are_still_lost() -> None:
     load = LoadControl(None, 0.04, 0.1)
     t = 0
@@ -183,7 +208,9 @@ def test_pdp_1_is_never_bounded_and_every_co_design_policy_is() -> None:
     cell = WorkCellConfig(belt_speed_m_s=0.45, object_period_s=2.5)
     none = CoDesign(PolicyConfig(name="none"), cell)
     assert none.limits is None and none.load is None
-    fixed = CoDesign(PolicyConfig(name="fixed", pdp=0.1), cell)
+    started = CoDesign(PolicyConfig(name="fixed", pdp=0.1), cell)
+    assert started.decide(0, NOW, Tracker((0.45, 0.0, 0.0)), None).pdp == 0.2  # slow start: 0.1, doubled once
+    fixed = CoDesign(PolicyConfig(name="fixed", pdp=0.1, guard_start_pdp=1.0), cell)
     assert fixed.decide(0, NOW, Tracker((0.45, 0.0, 0.0)), None).pdp == 1.0  # headroom: PDP 1
     bare = CoDesign(PolicyConfig(name="fixed", pdp=0.1, headroom=False), cell)
     assert 0.1 < bare.decide(0, NOW, Tracker((0.45, 0.0, 0.0)), None).pdp < 1.0  # the floor's
