@@ -98,12 +98,13 @@ def test_the_detailed_camera_numbers_the_frames_it_sends_only(tmp_path: Path) ->
     assert [sent[f] for f in captures] == list(range(len(captures)))
 
 
-def cell(loops: int, capacity: int, periods: int, seq: bool) -> tuple[LoadControl, list[float]]:
+def cell(loops: int, capacity: int, periods: int, seq: bool, start: float = 1.0) -> tuple[LoadControl, list[float]]:
     """``loops`` cameras at 30 frame/s sending at the cap of a load control whose Edge sees a
     cell that carries ``capacity`` frames a policy period, drawn at random, with a constant
     20 ms delay and discards the rest whole at the UEs (the PDB); ``seq``: the Edge knows the
-    sent sequence. The load control and the injected frames, period by period."""
-    mon, load = UplinkMonitor(), LoadControl(0.025, 0.06, 0.1)
+    sent sequence; ``start``: the cap's slow start. The load control and the injected frames,
+    period by period."""
+    mon, load = UplinkMonitor(), LoadControl(0.025, 0.06, 0.1, start)
     rng = np.random.default_rng(1)
     sent = [0] * loops
     credit = [i / loops for i in range(loops)]  # the cameras' captures are not aligned
@@ -210,3 +211,12 @@ def test_a_loop_served_at_a_share_is_served_at_every_larger_share() -> None:
 def test_below_capacity_the_sequence_changes_nothing() -> None:
     load, injected = cell(20, 60, 100, seq=True)  # 20 or 40 frames a period, all carried
     assert load.cap == 1.0 and load.fill == 1.0 and max(injected) <= 60
+
+
+def test_the_slow_start_reaches_pdp_1_below_capacity_and_stops_at_the_first_loss_past_it() -> None:
+    load, injected = cell(20, 60, 100, seq=True, start=0.1)  # PDP 1 carried: up in four periods
+    assert load.cap == 1.0 and injected[4:] == [30] * 96
+    _, started = cell(100, 60, 100, seq=True, start=0.1)  # 2.5x what the cell carries
+    _, cold = cell(100, 60, 100, seq=True)
+    assert started[:3] == [30, 60, 120] and cold[:3] == [150] * 3  # doubling from 0.1 (0.2 first)
+    assert max(started[10:]) < 1.5 * 60 <= max(cold[10:])  # and in hand sooner
