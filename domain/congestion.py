@@ -64,9 +64,8 @@ LEAST_SERVED = 0.05
 # start, RFC 5681). Starting every loop at PDP 1 puts a cell past capacity into overload for the
 # half second its loss takes to show; the UEs then discard the tail of every frame at its delay
 # budget, so hardly a frame completes (at 40 loops of a 0.5 m/s cell, a camera's first to
-# complete after 0.08 s was captured at 0.71 s) and parts landing meanwhile on a fast belt
-# cross unseen. Below capacity the cap reaches 1
-# within four periods.
+# complete after 0.08 s was captured at 0.74 s) and parts landing meanwhile on a fast belt
+# cross unseen. Below capacity the cap reaches 1 within four periods.
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
@@ -255,8 +254,8 @@ class LoadControl:
       ``min_cap`` still loses more than SHED_LOSS_TARGET of its frames, then cut and raised by
       the frame loss as the cap is, down to LEAST_SERVED; the loops not served send nothing.
 
-    Below capacity the delay stays under both targets: every loop sends at PDP 1, as with no
-    co-design at all."""
+    Below capacity the delay stays under both targets: after the start every loop sends at
+    PDP 1, as with no co-design at all."""
 
     def __init__(self, headroom_s: float | None, cap_s: float | None, min_cap: float,
                  start_cap: float = 1.0) -> None:
