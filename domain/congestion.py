@@ -200,7 +200,7 @@ class Level:
         self.proportional = proportional
         self.value = start
         self._start = start
-        self.starting = start < 1.0
+        self._starting = start < 1.0
         self._last_cut_us: int | None = None
         # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first
         # (kept for a level steered by the loss).
@@ -221,7 +221,7 @@ class Level:
         cell's queueing delay ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
         loss = 1.0 if math.isnan(loss) else min(1.0, max(0.0, loss))  # a share; NaN: nothing known to arrive
         if queueing_s > self.target_s or loss > self.loss_target:
-            self.starting = False
+            self._starting = False
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 cut = self.value * CUT
                 if self.loss_target < 1.0:  # to what the cell delivers (LOSS_LAG_US)
@@ -229,9 +229,9 @@ class Level:
                     cut = min(cut, max(self.value * DEEPEST_CUT, delivered))
                 self.value = max(self.low, cut)
                 self._last_cut_us = now_us
-        elif self.starting:
+        elif self._starting:
             self.value = min(1.0, 2.0 * self.value)
-            self.starting = self.value < 1.0
+            self._starting = self.value < 1.0
         else:
             self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
         if self.loss_target < 1.0:  # only a level steered by the loss looks back
