@@ -21,6 +21,12 @@ CELL_ALPHA = 0.3
 # discarded whole at the UE, overflowed or failed HARQ; a frame overtaken by a later one in
 # HARQ arrives within tens of ms).
 LOST_AFTER_US = 250_000
+# A frame expected (started to arrive, or shown sent) and still incomplete this long after has
+# stalled: below capacity a frame's packets all arrive within 20 ms of its first (17 ms at most
+# at 16 loops of a 0.5 m/s cell). Stalled frames show an overload within a period or two of its
+# onset, where the loss shows only LOST_AFTER_US later and the delay only of frames that complete
+# (in overload hardly any); the slow start ends on them (below).
+STALL_US = 50_000
 # The cap also takes the cell as past capacity when more than this share of the frames the
 # cameras sent never complete (discarded late, overflowed or failed HARQ, whole or in part): deep
 # in overload few frames complete, and their delays alone say little. The share counts every
@@ -65,7 +71,15 @@ LEAST_SERVED = 0.05
 # half second its loss takes to show; the UEs then discard the tail of every frame at its delay
 # budget, so hardly a frame completes (at 40 loops of a 0.5 m/s cell, a camera's first to
 # complete after 0.08 s was captured at 0.74 s) and parts landing meanwhile on a fast belt
-# cross unseen. Below capacity the cap reaches 1 within four periods.
+# cross unseen. Below capacity the cap reaches 1 within four periods. Doubling, the start
+# overshoots: frames sent past capacity stall (STALL_US) some 150 ms later, by when the cap has
+# doubled twice more or reached 1 (at 40 loops of a 0.5 m/s cell, sent at 0.8 from 150 ms,
+# stalled from 300 ms). So the start watches for stalled frames until the cap has been 1 for
+# START_WATCH_US, ends on more than LOSS_TARGET of them stalled, and then cuts to half the cap in
+# force START_LAG_US before, under which the stalled frames were sent (TCP's halving of the
+# window in force at the loss).
+START_LAG_US = 100_000
+START_WATCH_US = 200_000
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
@@ -116,6 +130,7 @@ class UplinkMonitor:
         self.loss: dict[int, float] = {}
         self.cell_queueing_s = 0.0
         self.cell_loss = 0.0
+        self.stalled = 0.0  # share of the frames expected, at the last period, that have stalled
         self._sum_s = 0.0
         self._n = 0
         self._lost = 0
@@ -165,7 +180,11 @@ class UplinkMonitor:
     def period(self, now_us: int) -> tuple[float, float]:
         """Fold the frames since the last call into the cell's queueing delay (s) and loss (share
         of frames), which it returns; at ``now_us`` (us), a frame expected LOST_AFTER_US ago
-        (started, or shown sent by a later one) and still incomplete counts as lost."""
+        (started, or shown sent by a later one) and still incomplete counts as lost. ``stalled``
+        becomes the share of the frames expected STALL_US ago or more and still incomplete among
+        those and the frames completed since the last call (not smoothed: the start's signal)."""
+        stalled = sum(1 for first in self._partial.values() if now_us - first >= STALL_US)
+        self.stalled = stalled / (stalled + self._n) if stalled else 0.0
         for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
             del self._partial[key]
             self.lost(key[0])
@@ -201,6 +220,7 @@ class Level:
         self.value = start
         self._start = start
         self._starting = start < 1.0
+        self._full_us: int | None = None  # when the start reached 1
         self._last_cut_us: int | None = None
         # (time, value) of the last LOSS_LAG_US and the last value before them, oldest first
         # (kept for a level steered by the loss).
@@ -216,22 +236,29 @@ class Level:
             before = v
         return before
 
-    def update(self, now_us: int, queueing_s: float, loss: float) -> None:
+    def update(self, now_us: int, queueing_s: float, loss: float, stalled: float = 0.0) -> None:
         """One policy period ending at ``now_us`` (us, never before the last call's) with the
-        cell's queueing delay ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
+        cell's queueing delay ``queueing_s`` (s), loss ``loss`` and stalled frames ``stalled``
+        (shares of frames)."""
         loss = 1.0 if math.isnan(loss) else min(1.0, max(0.0, loss))  # a share; NaN: nothing known to arrive
-        if queueing_s > self.target_s or loss > self.loss_target:
+        starting = self._starting
+        if (queueing_s > self.target_s or loss > self.loss_target
+                or (starting and stalled > self.loss_target)):
             self._starting = False
             if self._last_cut_us is None or now_us - self._last_cut_us >= HOLD_US:
                 cut = self.value * CUT
                 if self.loss_target < 1.0:  # to what the cell delivers (LOSS_LAG_US)
                     delivered = self._value_at(now_us - LOSS_LAG_US) * (1.0 - loss)
                     cut = min(cut, max(self.value * DEEPEST_CUT, delivered))
+                if starting:  # the start overshot: half what the stalled frames were sent under
+                    cut = min(cut, self._value_at(now_us - START_LAG_US) * DEEPEST_CUT)
                 self.value = max(self.low, cut)
                 self._last_cut_us = now_us
         elif self._starting:
             self.value = min(1.0, 2.0 * self.value)
-            self._starting = self.value < 1.0
+            if self.value == 1.0 and self._full_us is None:
+                self._full_us = now_us
+            self._starting = self._full_us is None or now_us - self._full_us < START_WATCH_US
         else:
             self.value = min(1.0, self.value * (1 + STEP) if self.proportional else self.value + STEP)
         if self.loss_target < 1.0:  # only a level steered by the loss looks back
@@ -284,9 +311,9 @@ class LoadControl:
         """Whether ``loop`` (its index) is served now: its rank under the share served."""
         return served_rank(loop) < self.served
 
-    def update(self, now_us: int, queueing_s: float, loss: float) -> None:
+    def update(self, now_us: int, queueing_s: float, loss: float, stalled: float = 0.0) -> None:
         """One policy period ending at ``now_us`` (us) whose smoothed queueing delay is
-        ``queueing_s`` (s) and loss ``loss`` (share of frames)."""
+        ``queueing_s`` (s), loss ``loss`` and stalled frames ``stalled`` (shares of frames)."""
         if self._fill is not None:
             self._fill.update(now_us, queueing_s, 1.0)
         if self._cap is None:
@@ -296,7 +323,7 @@ class LoadControl:
                                         and loss > SHED_LOSS_TARGET):
             self._served.update(now_us, queueing_s, loss)
         else:
-            self._cap.update(now_us, queueing_s, loss)
+            self._cap.update(now_us, queueing_s, loss, stalled)
         if self._cap.value > self._cap.low:
             self._least_since_us = None
         elif least is None:

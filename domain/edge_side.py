@@ -118,7 +118,7 @@ class CoDesign:
         the cell's figures and the load control."""
         queueing_s, loss = self.monitor.period(now_us)
         if self.load is not None:
-            self.load.update(now_us, queueing_s, loss)
+            self.load.update(now_us, queueing_s, loss, self.monitor.stalled)
             metrics.PDP_FILL.set(self.load.fill)
             metrics.PDP_CAP.set(self.load.cap)
             metrics.LOOPS_SERVED.set(self.load.served)

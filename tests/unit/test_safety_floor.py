@@ -15,9 +15,11 @@ from domain.congestion import (
     IDLE_LINK,
     LEAST_SERVED,
     LOOP_ALPHA,
+    LOSS_TARGET,
     LOST_AFTER_US,
     SHED_AFTER_US,
     SHED_LOSS_TARGET,
+    START_WATCH_US,
     STEP,
     LinkEstimate,
     LoadControl,
@@ -126,17 +128,30 @@ def test_the_cap_starts_low_and_doubles_until_the_first_sign_of_congestion() -> 
     load = LoadControl(None, 0.04, 0.1, start_cap=0.1)
     assert load.cap == 0.1
     caps = []
-    for k in range(5):  # an idle cell: 0.2, 0.4, 0.8, then 1, where the start ends
+    for k in range(5):  # an idle cell: 0.2, 0.4, 0.8, then 1 (at 150 ms)
         load.update(50_000 * k, 0.0, 0.0)
         caps.append(load.cap)
     assert caps == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0])
-    load = LoadControl(None, 0.04, 0.1, start_cap=0.1)
+    load.update(250_000, 0.0, 0.0, stalled=LOSS_TARGET)  # a few frames stalled: nothing
+    assert load.cap == 1.0
+    # Frames sent past capacity stall before their loss shows: while the start watches (the cap
+    # 1 for less than START_WATCH_US), the cap is cut to half what it was START_LAG_US before.
+    load.update(150_000 + START_WATCH_US - 50_000, 0.0, 0.0, stalled=0.5)
+    assert load.cap == pytest.approx(0.5)
+    load.update(150_000 + START_WATCH_US, 0.0, 0.0)
+    assert load.cap == pytest.approx(0.5 * (1 + STEP))  # the start is over: the usual climb
+    watched = LoadControl(None, 0.04, 0.1, start_cap=0.1)
+    for k in range(4 + START_WATCH_US // 50_000):
+        watched.update(50_000 * k, 0.0, 0.0)
+    watched.update(50_000 * (4 + START_WATCH_US // 50_000), 0.0, 0.0, stalled=1.0)
+    assert watched.cap == 1.0  # past the start, stalled frames alone cut nothing
+    load = LoadControl(None, 0.04, 0.05, start_cap=0.1)
     load.update(0, 0.0, 0.0)
     load.update(50_000, 0.0, 0.0)  # 0.4
     load.update(100_000, 0.0, 0.5)  # half the frames lost: the start ends in a cut ...
-    assert load.cap == pytest.approx(0.2)  # ... to what arrives of the start's 0.1 (floored at half)
+    assert load.cap == pytest.approx(0.1)  # ... to half the 0.2 of START_LAG_US before
     load.update(150_000, 0.0, 0.0)
-    assert load.cap == pytest.approx(0.2 * (1 + STEP))  # then the usual climb
+    assert load.cap == pytest.approx(0.1 * (1 + STEP))  # then the usual climb
 
 
 def test_the_slow_start_is_a_setting_at_least_the_least_cap() -> None:

@@ -19,6 +19,7 @@ from domain.congestion import (
     LOSS_TARGET,
     LOST_AFTER_US,
     SHED_LOSS_TARGET,
+    STALL_US,
     Level,
     LoadControl,
     UplinkMonitor,
@@ -81,6 +82,20 @@ def test_frames_that_never_started_and_one_left_incomplete_are_both_lost() -> No
     mon.frame(0, 0, 120_000, 3)  # 2 discarded whole at the UE
     _, loss = mon.period(120_000 + LOST_AFTER_US)
     assert loss == pytest.approx(CELL_ALPHA * 2 / 3)  # 1 and 2 lost, 3 complete
+
+
+def test_a_frame_incomplete_stall_us_after_its_first_packet_has_stalled() -> None:
+    mon = UplinkMonitor()
+    mon.started(0, 0, 10_000)
+    mon.frame(1, 0, 20_000, 0)
+    mon.period(10_000 + STALL_US - 1)
+    assert mon.stalled == 0.0
+    mon.frame(1, 33_000, 55_000, 1)
+    mon.period(10_000 + STALL_US)  # one stalled, one complete since the last period
+    assert mon.stalled == pytest.approx(0.5)
+    mon.frame(0, 0, 70_000, 0)  # complete at last, late
+    mon.period(100_000)
+    assert mon.stalled == 0.0
 
 
 def test_the_detailed_camera_numbers_the_frames_it_sends_only(tmp_path: Path) -> None:
