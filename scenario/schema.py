@@ -426,8 +426,8 @@ class PolicyConfig(Strict):
                                  "past it the guard sheds loops instead")
     guard_start_pdp: float = Field(
         default=0.1, gt=0, le=1, description="`guard`: the cap a run starts from, doubled every policy "
-        "period until the first sign of congestion or 1 (a slow start: the Edge knows nothing of "
-        "the cell's capacity yet); at least `guard_min_pdp`; 1: every loop starts at PDP 1")
+        "period until the first sign of congestion (stalled frames too) or 1 (a slow start: the Edge "
+        "knows nothing of the cell's capacity yet); at least `guard_min_pdp`; 1: every loop starts at PDP 1")
 
     @model_validator(mode="after")
     def _start_above_least(self) -> PolicyConfig:
