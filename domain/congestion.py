@@ -78,10 +78,11 @@ LEAST_SERVED = 0.05
 # START_WATCH_US, ends on more than LOSS_TARGET of them stalled, and then cuts to half the cap in
 # force START_LAG_US before, under which the stalled frames were sent (TCP's halving of the
 # window in force at the loss). The frames lost in that overload are read as loss only from about
-# LOSS_LAG_US later, long after the start's cut has answered them: for LOSS_LAG_US after it, a
+# LOSS_LAG_US later, when the start's cut has mostly answered them: for LOSS_LAG_US after it, a
 # loss cuts nothing (TCP's fast recovery, RFC 6582: one cut per episode of loss); the queueing
-# delay still cuts. Cut again by that loss, the cap fell to half what the cell carries (at 56
-# loops of a 0.5 m/s cell, seed 2: from 0.21 to 0.11, which starved every loop of frames).
+# delay still cuts past its target. Cut again by that loss, the cap fell to half what the cell
+# carries (at 56 loops of a 0.5 m/s cell, seed 2: from 0.21 to 0.11, which starved every loop of
+# frames).
 START_LAG_US = 100_000
 START_WATCH_US = 200_000
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
