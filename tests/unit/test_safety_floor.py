@@ -155,23 +155,25 @@ def test_the_cap_starts_low_and_doubles_until_the_first_sign_of_congestion() -> 
     assert load.cap == pytest.approx(0.1 * (1 + STEP))  # then the usual climb
 
 
-def test_the_loss_of_the_frames_sent_before_the_starts_cut_cuts_nothing_more() -> None:
+def _cut_by_the_start() -> LoadControl:
+    """A load control whose slow start (0.2, 0.4, 0.8) ended at 150 ms on stalled frames."""
     load = LoadControl(None, 0.04, 0.05, start_cap=0.1)
-    for k in range(3):  # 0.2, 0.4, 0.8
+    for k in range(3):
         load.update(50_000 * k, 0.0, 0.0)
     load.update(150_000, 0.0, 0.0, stalled=0.5)  # the start overshot: half the 0.4 of 100 ms before
+    return load
+
+
+def test_the_loss_of_the_frames_sent_before_the_starts_cut_cuts_nothing_more() -> None:
+    load = _cut_by_the_start()
     assert load.cap == pytest.approx(0.2)
-    t = 150_000 + HOLD_US
-    load.update(t, 0.0, 0.5)  # the overload's loss shows: those frames were sent before the cut
+    load.update(150_000 + HOLD_US, 0.0, 0.5)  # the overload's loss shows: those frames were sent before the cut
     assert load.cap == pytest.approx(0.2 * (1 + STEP))
     load.update(150_000 + LOSS_LAG_US - 50_000, 0.0, 0.5)
     assert load.cap > 0.2
     load.update(150_000 + LOSS_LAG_US, 0.0, 0.5)  # a loss read LOSS_LAG_US after the cut is new
     assert load.cap < 0.2
-    delayed = LoadControl(None, 0.04, 0.05, start_cap=0.1)
-    for k in range(3):
-        delayed.update(50_000 * k, 0.0, 0.0)
-    delayed.update(150_000, 0.0, 0.0, stalled=0.5)
+    delayed = _cut_by_the_start()
     delayed.update(150_000 + HOLD_US, 0.1, 0.0)  # the queueing delay still cuts, after HOLD_US
     assert delayed.cap < 0.2
 
