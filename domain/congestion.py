@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import astuple, dataclass
 
 # Smoothing of the per-loop estimates, per frame: about the last ten frames weigh.
 LOOP_ALPHA = 0.1
@@ -112,6 +113,17 @@ class LinkEstimate:
 IDLE_LINK = LinkEstimate()
 
 
+@dataclass(frozen=True)
+class PeriodCounts:
+    """What a monitor saw of an Edge's frames over one policy period: the sum of their queueing
+    delays (s) and how many completed, were counted lost and had stalled at its end."""
+
+    queued_s: float
+    frames: int
+    lost: int
+    stalled: int
+
+
 class UplinkMonitor:
     """Smoothed uplink delay and loss of the frames an Edge receives, per loop and cell-wide.
 
@@ -188,16 +200,35 @@ class UplinkMonitor:
         (started, or shown sent by a later one) and still incomplete counts as lost. ``stalled``
         becomes the share of the frames expected STALL_US ago or more and still incomplete among
         those and the frames completed since the last call (not smoothed: the start's signal)."""
+        return self.fold([self.close(now_us)])
+
+    def close(self, now_us: int) -> PeriodCounts:
+        """The counts of the frames since the last call, as ``period`` folds them at ``now_us``
+        (us); the next call counts from here."""
         stalled = sum(1 for first in self._partial.values() if now_us - first >= STALL_US)
-        self.stalled = stalled / (stalled + self._n) if stalled else 0.0
         for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
             del self._partial[key]
             self.lost(key[0])
-        if self._n:
-            self.cell_queueing_s += CELL_ALPHA * (self._sum_s / self._n - self.cell_queueing_s)
-        if self._n or self._lost:
-            self.cell_loss += CELL_ALPHA * (self._lost / (self._n + self._lost) - self.cell_loss)
+        counts = PeriodCounts(self._sum_s, self._n, self._lost, stalled)
         self._sum_s, self._n, self._lost = 0.0, 0, 0
+        return counts
+
+    def fold(self, counts: Iterable[PeriodCounts]) -> tuple[float, float]:
+        """Fold a period's ``counts`` (``close``: this monitor's own, and those of the other
+        monitors watching the same Edge's frames) into the cell's queueing delay (s) and loss
+        (share of frames), which it returns, and the share of frames ``stalled``. The counts are
+        summed in an order of their own, so every monitor given the same counts folds the same
+        figures."""
+        ordered = sorted(counts, key=astuple)
+        sum_s = sum(c.queued_s for c in ordered)
+        n = sum(c.frames for c in ordered)
+        lost = sum(c.lost for c in ordered)
+        stalled = sum(c.stalled for c in ordered)
+        self.stalled = stalled / (stalled + n) if stalled else 0.0
+        if n:
+            self.cell_queueing_s += CELL_ALPHA * (sum_s / n - self.cell_queueing_s)
+        if n or lost:
+            self.cell_loss += CELL_ALPHA * (lost / (n + lost) - self.cell_loss)
         return self.cell_queueing_s, self.cell_loss
 
     def estimate(self, loop: int) -> LinkEstimate:

@@ -13,7 +13,7 @@ import numpy as np
 
 from domain import work_cell as g
 from domain.codec import slot_after
-from domain.congestion import LoadControl, UplinkMonitor
+from domain.congestion import LoadControl, PeriodCounts, UplinkMonitor
 from domain.edges import EdgePlan, edge_name
 from domain.frame_model import load_frame_model
 from domain.loop_state import LoopState
@@ -23,7 +23,7 @@ from domain.safety_floor import FloorLimits, safety_floor
 from domain.tracker import Tracker
 from fabric import metrics
 from scenario.schema import EdgeConfig, PolicyConfig, RobotConfig, Scenario, WorkCellConfig
-from wire.bodies import Packet, Payload, QosCtl, QosSignal, Track
+from wire.bodies import EdgeCounts, Packet, Payload, QosCtl, QosSignal, Track
 
 # An unchanged QoS is signalled again this often: the downlink can lose it.
 QOS_REFRESH_US = 1_000_000
@@ -67,6 +67,10 @@ class CoDesign:
         self.sent: dict[int, tuple[Qos, int]] = {}
         self.last_spawn_us: dict[int, int] = {}
         self.monitor = UplinkMonitor()
+        # An Edge whose loops two federates serve (``Edges.share``) folds, each period, the
+        # counts each of them closed a little before it (``close``, ``peer``).
+        self.shared = False
+        self._counts: list[PeriodCounts] = []
         codesign = cfg.name != "none"  # PDP 1 is the reference: never floored nor capped
         self.limits = (limits or default_limits(cfg)) if codesign and cfg.floor else None
         self.load = load_control(cfg) if codesign else None
@@ -115,8 +119,12 @@ class CoDesign:
 
     def period(self, now_us: int) -> None:
         """A new policy period, starting at ``now_us`` (us): the uplink's last period folded into
-        the cell's figures and the load control."""
-        queueing_s, loss = self.monitor.period(now_us)
+        the cell's figures and the load control (a shared Edge's: the counts closed for it)."""
+        if self.shared:
+            queueing_s, loss = self.monitor.fold(self._counts)
+            self._counts = []
+        else:
+            queueing_s, loss = self.monitor.period(now_us)
         if self.load is not None:
             self.load.update(now_us, queueing_s, loss, self.monitor.stalled)
             metrics.PDP_FILL.set(self.load.fill)
@@ -127,6 +135,18 @@ class CoDesign:
         for i, level in enumerate(self.levels()[:3]):
             self._levels[i] += level
         self._levels[3] += self.served
+
+    def close(self, now_us: int) -> PeriodCounts:
+        """A shared Edge's counts of this federate's frames since the last close, at ``now_us``
+        (us, shortly before the period ends: ``Edges.close_ahead_us``), kept for the period and
+        sent to the other federate."""
+        counts = self.monitor.close(now_us)
+        self._counts.append(counts)
+        return counts
+
+    def peer(self, counts: PeriodCounts) -> None:
+        """The other federate's counts of a shared Edge's frames, closed when this one's were."""
+        self._counts.append(counts)
 
     def levels(self) -> tuple[float, float, float, float]:
         """The load control's fill and cap (PDP; 1 and 1 without load control), and the cell's
@@ -197,10 +217,46 @@ class Edges:
             codesign = CoDesign(sc.policy, sc.work_cell, len(every[name]), sc.camera.fps, limits)
             self.by_edge[name] = codesign
             self._of_loop.update(dict.fromkeys(members, codesign))
+        self.window_us = sc.window_us
+        self.shared: list[str] = []  # the Edges whose loops another federate serves too (``share``)
+        self._codesign = sc.policy.name != "none"
 
     def __getitem__(self, loop: int) -> CoDesign:
         """The co-design of the Edge serving ``loop``."""
         return self._of_loop[loop]
+
+    def share(self, others: Iterable[int]) -> list[str]:
+        """Mark the Edges that serve loops among ``others`` too (another federate's: the Edge
+        federate serves the detailed loops, the abstract loops' federate the rest) as shared, with
+        a co-design policy; their names. A shared Edge is one Edge: each period both federates
+        fold the same counts of its frames (``close_ahead_us`` before the period ends each closes
+        its own and sends them to the other), so its cell figures and its load control are the
+        same in both, and a detailed loop is steered as an abstract one beside it."""
+        if self._codesign:
+            self.shared = [name for name in self.plan.groups(others) if name in self.by_edge]
+            for name in self.shared:
+                self.by_edge[name].shared = True
+        return self.shared
+
+    @property
+    def close_ahead_us(self) -> int:
+        """How long before a policy period ends a shared Edge's counts are closed: sent a window
+        after the close (no window is longer), they arrive a window before the period ends."""
+        return 2 * self.window_us
+
+    def close(self, now_us: int) -> tuple[int, list[EdgeCounts]]:
+        """Close every shared Edge's counts at ``now_us`` (us): when they are due at the other
+        federate (a window later) and the bodies that carry them."""
+        bodies = []
+        for name in self.shared:
+            c = self.by_edge[name].close(now_us)
+            bodies.append(EdgeCounts(edge=name, queued_s=c.queued_s, frames=c.frames, lost=c.lost,
+                                     stalled=c.stalled))
+        return now_us + self.window_us, bodies
+
+    def peer(self, counts: EdgeCounts) -> None:
+        """The other federate's counts of a shared Edge (``close``)."""
+        self.by_edge[counts.edge].peer(PeriodCounts(counts.queued_s, counts.frames, counts.lost, counts.stalled))
 
     def summary(self) -> dict[str, Any]:
         """Per Edge what it saw and decided (``CoDesign.summary``, with its loops and gNBs), and

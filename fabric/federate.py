@@ -15,7 +15,7 @@ import resource
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -266,7 +266,7 @@ class Federate:
         at ``t_us`` (>= end of this window), with ``blob``: payload bytes, if any."""
         self._send(dst, body.PLANE, body.KIND, t_us, body, blob)
 
-    def send_bundle(self, dst: str, t_us: int, bodies: list[Body]) -> None:
+    def send_bundle(self, dst: str, t_us: int, bodies: Sequence[Body]) -> None:
         """Send several bodies without payload bytes to ``dst``, all delivered at ``t_us``, as one
         message: the receiver handles them one by one, in this order, as if each had been sent on
         its own (a cell delivering dozens of packets in one slot pays the per-message cost once)."""

@@ -585,6 +585,12 @@ class Scenario(Strict):
                 )
         if self.netsim.slot_us % w:
             raise ValueError(f"window_us ({w}) must divide netsim.slot_us ({self.netsim.slot_us})")
+        if (self.policy.name != "none" and 0 < self.detailed_loops < self.loops
+                and self.edge.policy_period_ms * 1000 <= 2 * w):
+            raise ValueError(
+                f"edge.policy_period_ms = {self.edge.policy_period_ms} ms must exceed two windows "
+                f"(window_us = {w} us): the detailed and the abstract loops' federates share each "
+                f"Edge's counts of its frames a window before every period ends")
         if w % self.physics_timestep_us:
             raise ValueError(
                 f"physics_timestep_us ({self.physics_timestep_us}) must divide window_us ({w})"

@@ -30,6 +30,8 @@ FRAME = "frame"
 AFRAME = "aframe"
 POSE = "pose"
 QOS = "qos"
+# ... and, on that plane, an Edge's counts of its frames shared by the two federates serving it.
+EDGE_COUNTS = "edge_counts"
 
 SENSE, ACT, NET = "sense", "act", "net"
 
@@ -271,3 +273,17 @@ class HeldPackets(Body):
     start_us: int
     packets: list[tuple[int, str, str, int, int]]
     fading: FadingProcesses
+
+
+class EdgeCounts(Body):
+    """One policy period of an Edge's frames as one of the two federates serving its loops saw
+    them (docs/architecture.md sec. 7): the sum of their queueing delays (s), and how many
+    completed, were counted lost and had stalled; the other folds them with its own."""
+
+    KIND: ClassVar[str] = EDGE_COUNTS
+    PLANE: ClassVar[str] = NET
+    edge: str
+    queued_s: float
+    frames: int
+    lost: int
+    stalled: int

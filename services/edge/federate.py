@@ -20,7 +20,7 @@ from domain.work_cell import CameraIntrinsics
 from fabric.compute import ComputeNode
 from fabric.federate import Federate, Handlers
 from fabric.messages import Message
-from wire.bodies import Frame, Payload, Pose
+from wire.bodies import EdgeCounts, Frame, Payload, Pose
 
 PARTIAL_FRAME_TIMEOUT_US = 500_000  # a frame missing packets this long is given up
 
@@ -42,6 +42,8 @@ class EdgeFederate(Federate):
         # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py); one
         # CPU serves them all.
         self.edges = Edges(sc, load_plan(sc, self.results_dir), self.loops)
+        # An Edge serving abstract loops too shares its counts with the abstract loops' federate.
+        self.edges.share(range(sc.detailed_loops, sc.loops))
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}
         self.last_frame_us: dict[int, int | None] = {i: None for i in self.loops}
         self.frames = self.table("frames")
@@ -53,7 +55,14 @@ class EdgeFederate(Federate):
             self.schedule(0, self._policy_tick)
 
     def handlers(self) -> Handlers:
-        return {Frame: self._on_frame}
+        return {Frame: self._on_frame, EdgeCounts: self._on_counts}
+
+    def _on_counts(self, counts: EdgeCounts, msg: Message) -> None:
+        self.edges.peer(counts)
+
+    def _close_edges(self) -> None:
+        due, bodies = self.edges.close(self.now)
+        self.send_bundle("loops", due, bodies)
 
     def _on_frame(self, frame: Frame, msg: Message) -> None:
         if self.edges.backhaul_us:  # a central Edge: the packet crosses the backhaul from the gNB
@@ -117,6 +126,8 @@ class EdgeFederate(Federate):
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
+            if self.edges.shared:
+                self.schedule(nxt - self.edges.close_ahead_us, self._close_edges)
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario

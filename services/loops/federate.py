@@ -30,6 +30,7 @@ from wire.bodies import (
     Aframe,
     Command,
     Commands,
+    EdgeCounts,
     JointStates,
     Packets,
     Part,
@@ -71,6 +72,9 @@ class LoopsFederate(Federate):
         self.frame_model = model_for(camera_settings(sc.camera), self.results_dir / RUN_FILE)
         # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py).
         self.edges = Edges(sc, load_plan(sc, self.results_dir), range(sc.detailed_loops, sc.loops))
+        # An Edge serving detailed loops too shares its counts with the Edge federate.
+        self.edges.share(range(sc.detailed_loops))
+        self.next_close_us: int | None = None  # when the shared Edges' counts are closed next
         self.route = load_route(sc, self.results_dir)  # the netsim (partition) of each radio
         nodes = sc.nodes
 
@@ -100,13 +104,16 @@ class LoopsFederate(Federate):
         return max(self.next_tick_us, now_us) if plane == "act" else now_us
 
     def external_horizon_us(self) -> int | None:
-        # It sends only to physics and netsim: nothing leaves a group holding both.
-        return NEVER_US if {"physics", *self.route.netsims} <= self.cohosted else None
+        # It sends only to physics and netsim, and the counts of the Edges it shares to the Edge
+        # federate: nothing else leaves a group holding both.
+        if not {"physics", *self.route.netsims} <= self.cohosted:
+            return None
+        return NEVER_US if self.next_close_us is None else self.next_close_us
 
     # ---- messages -----------------------------------------------------------------------------
     def handlers(self) -> Handlers:
         return {JointStates: self._on_states, Truth: self._on_truth, Aframe: self._on_aframe,
-                Pose: self._on_pose, QosSignal: self._on_qos}
+                Pose: self._on_pose, QosSignal: self._on_qos, EdgeCounts: self._on_counts}
 
     def _on_states(self, states: JointStates, msg: Message) -> None:
         for key, st in states.states.items():
@@ -129,6 +136,9 @@ class LoopsFederate(Federate):
     def _on_qos(self, qos: QosSignal, msg: Message) -> None:
         lp = self.loops[qos.loop]
         lp.pdp, lp.pdb_us = float(qos.pdp), qos.pdb_us
+
+    def _on_counts(self, counts: EdgeCounts, msg: Message) -> None:
+        self.edges.peer(counts)
 
     # ---- camera side ----------------------------------------------------------------------------
     def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[Part]) -> None:
@@ -203,6 +213,14 @@ class LoopsFederate(Federate):
         nxt = self.now + sc.edge.policy_period_ms * 1000
         if nxt < sc.duration_us:
             self.schedule(nxt, self._policy_tick)
+            if self.edges.shared:
+                self.next_close_us = nxt - self.edges.close_ahead_us
+                self.schedule(self.next_close_us, self._close_edges)
+
+    def _close_edges(self) -> None:
+        self.next_close_us = None
+        due, bodies = self.edges.close(self.now)
+        self.send_bundle("edge", due, bodies)
 
     def _lower_layer_qos(self, loop: int, qos: Qos) -> None:
         sc = self.scenario

@@ -44,3 +44,19 @@ def test_factory_small_runs_with_an_edge_per_gnb_and_with_a_central_edge(tmp_pat
     assert list(central["edges"]) == ["central"] and plan["edges"] == {"central": list(range(40))}
     assert central["edges"]["central"]["gnbs"] == [0, 1, 2, 3]
     assert set(central["gnbs"]) == set(per["gnbs"])  # the PDP is still reported per gNB
+
+
+def test_the_detailed_and_the_abstract_loops_of_one_edge_see_one_load_control(tmp_path: Path) -> None:
+    # One detailed loop beside five abstract ones, all at gNB 0's Edge: its two federates fold
+    # the same counts every period, so they report the same levels over the run.
+    sc = load_scenario(Path(__file__).parents[2] / "configs" / "scenarios" / "co_design.yaml",
+                       ["duration_s=2", "loops=6", "detailed_loops=1", *MODEL_TIMING_SETS])
+    result = execute_run(sc, tmp_path / "shared")
+    assert result.status == "completed", result.reason
+    feds = result.kpis["federates"]
+    detailed, abstract = feds["edge"]["edges"]["edges"]["gnb0"], feds["loops"]["edges"]["edges"]["gnb0"]
+    assert (detailed["loops_here"], abstract["loops_here"]) == ([0], [1, 2, 3, 4, 5])
+    levels = ("mean_fill", "mean_cap", "mean_queueing_delay_s", "mean_served", "fill", "cap",
+              "queueing_delay_s", "frame_loss", "served")
+    assert {k: detailed[k] for k in levels} == {k: abstract[k] for k in levels}
+    assert detailed["mean_cap"] < 1.0  # the slow start: levels that moved

@@ -17,7 +17,7 @@ from domain.edges import EDGE_FILE, load_plan, make_plan, single_gnb_plan, write
 from domain.frame_model import RUN_FILE, camera_settings
 from domain.tracker import Tracker
 from fabric.bus import InMemoryBus, InMemoryHub
-from fabric.federate import FederateContext
+from fabric.federate import NEVER_US, FederateContext
 from fabric.messages import Advance, Message
 from netsim.federate import make_cell
 from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario
@@ -191,3 +191,82 @@ def test_a_central_edge_gets_each_frame_and_sends_each_packet_a_backhaul_later(t
     for now, _, t, _ in per_sent + central_sent:
         assert t >= (now // W + 1) * W
     assert central.finish("completed")["edges"]["backhaul_ms"] == 1.0
+
+
+# ---- one Edge served by two federates --------------------------------------------------------------
+def test_an_edge_two_federates_serve_folds_what_one_serving_every_loop_folds() -> None:
+    # Loops 0 and 1 detailed (the Edge federate), 2 and 3 abstract (the loops federate), all at
+    # gNB 0's Edge; loop 0's frames queue, the others' do not.
+    sc = parse_scenario({"loops": 4, "detailed_loops": 2, "policy": {"name": "heuristic"}})
+    plan = single_gnb_plan(sc)
+    whole, detailed, abstract = Edges(sc, plan, range(4)), Edges(sc, plan, range(2)), Edges(sc, plan, range(2, 4))
+    assert detailed.share(range(2, 4)) == ["gnb0"] and abstract.share(range(2)) == ["gnb0"]
+    assert whole.share([]) == [] and not whole.by_edge["gnb0"].shared
+    period, ahead = sc.edge.policy_period_ms * 1000, detailed.close_ahead_us
+    assert ahead == 2 * sc.window_us
+    tracker = Tracker((0.2, 0.0, 0.0))
+    for t in range(0, 3_000_000, period):
+        if t:
+            # Frames complete between the closes only: the counts closed ahead hold them all.
+            for loop in range(4):
+                delay = 100_000 + t // 20 if loop == 0 else 20_000
+                for side in (whole, detailed if loop < 2 else abstract):
+                    side[loop].monitor.started(loop, t // period, t - ahead - 10_000)
+                    side[loop].monitor.frame(loop, t - ahead - 10_000 - delay, t - ahead - 5_000, t // period)
+            (due_d, sent_d), (due_a, sent_a) = detailed.close(t - ahead), abstract.close(t - ahead)
+            assert due_d == due_a == t - ahead + sc.window_us < t  # in before the period ends
+            for counts in sent_d:
+                abstract.peer(counts)
+            for counts in sent_a:
+                detailed.peer(counts)
+        for loop in range(4):
+            whole[loop].decide(loop, t, tracker, None)
+            (detailed if loop < 2 else abstract)[loop].decide(loop, t, tracker, None)
+    one, d, a = whole.by_edge["gnb0"], detailed.by_edge["gnb0"], abstract.by_edge["gnb0"]
+    assert one.levels()[2] > 0.025  # queued: the fill fell from PDP 1
+    assert d.levels() == a.levels() == one.levels()
+    assert d.load is not None and a.load is not None and one.load is not None
+    assert (d.load.fill, d.load.cap, d.monitor.stalled) == (a.load.fill, a.load.cap, a.monitor.stalled) \
+        == (one.load.fill, one.load.cap, one.monitor.stalled)
+    assert d.load.fill < 1.0
+
+
+def test_only_a_co_design_edge_is_shared_and_its_period_must_hold_two_windows() -> None:
+    sc = parse_scenario({"loops": 4, "detailed_loops": 2, "policy": {"name": "none"}})
+    assert Edges(sc, single_gnb_plan(sc), range(2)).share(range(2, 4)) == []  # PDP 1: nothing to steer
+    two = hall_scenario()
+    plan = make_plan(two, [0, 1, 1, 1])
+    assert Edges(two, plan, range(2)).share(range(2, 4)) == ["gnb1"]  # gNB 0's Edge is the Edge federate's alone
+    with pytest.raises(ScenarioError, match="edge.policy_period_ms = 2 ms must exceed two windows"):
+        parse_scenario({"loops": 4, "detailed_loops": 1, "policy": {"name": "heuristic"},
+                        "edge": {"policy_period_ms": 2}})
+    parse_scenario({"loops": 4, "detailed_loops": 4, "policy": {"name": "heuristic"},
+                    "edge": {"policy_period_ms": 2}})  # every loop detailed: no Edge shared
+
+
+def test_the_loops_federate_sends_its_counts_to_the_edge_federate_by_its_horizon(tmp_path: Path) -> None:
+    sc = parse_scenario({"loops": 3, "detailed_loops": 1, "policy": {"name": "heuristic"},
+                         "nodes": {"camera": MODEL, "edge": MODEL, "robot": MODEL}})
+    model = json.loads(FRAME_MODEL.read_text())
+    model["settings"].update(camera_settings(sc.camera))
+    (tmp_path / RUN_FILE).write_text(json.dumps(model))
+    fed = LoopsFederate(FederateContext("loops", "t1", sc, tmp_path), InMemoryBus(InMemoryHub()))
+    fed.setup()
+    fed.cohosted = frozenset({"physics", "netsim", "loops"})  # a group holding physics and netsim
+    sent: list[tuple[int, str, int, Any]] = []
+    bundle = fed.send_bundle
+
+    def recorded(dst: str, t_us: int, bodies: Any) -> None:
+        sent.append((fed.now, dst, t_us, bodies))
+        bundle(dst, t_us, bodies)
+
+    fed.send_bundle = recorded  # type: ignore[method-assign]
+    period = sc.edge.policy_period_ms * 1000
+    fed.process_window(Advance(window=0, t_start_us=0, t_end_us=W, expected_in={}))
+    close = period - 2 * W
+    assert fed.external_horizon_us() == close  # the group may not run past the close's window
+    for k in range(1, close // W + 1):
+        fed.process_window(Advance(window=k, t_start_us=k * W, t_end_us=(k + 1) * W, expected_in={}))
+    ((now, dst, due, bodies),) = sent
+    assert (now, dst, due) == (close, "edge", close + W) and [b.edge for b in bodies] == ["gnb0"]
+    assert fed.external_horizon_us() == NEVER_US  # nothing more to send before the next period
