@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The parts' orange in OpenCV HSV (hue 0..180: orange ~ 8..22), low and high bounds.
+PART_HSV_LOW, PART_HSV_HIGH = np.array([5, 120, 80]), np.array([25, 255, 255])
+
 
 @dataclass(frozen=True)
 class Detection:

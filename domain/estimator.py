@@ -11,7 +11,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from domain.detection import Detection
+from domain.detection import PART_HSV_HIGH, PART_HSV_LOW, Detection
 from domain.work_cell import CameraIntrinsics
 
 log = logging.getLogger(__name__)
@@ -44,8 +44,7 @@ class ClassicalEstimator:
         """Parts in one decoded frame: ``rgb`` (uint8 HxWx3), ``depth_mm`` (uint16 HxW, mm, 0 =
         invalid)."""
         hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
-        # OpenCV hue is 0..180: orange ~ 8..22.
-        mask = cv2.inRange(hsv, np.array([5, 120, 80]), np.array([25, 255, 255]))
+        mask = cv2.inRange(hsv, PART_HSV_LOW, PART_HSV_HIGH)
         n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
         out = []
         for i in range(1, n):

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from domain import work_cell as g
-from domain.detection import Detection
+from domain.detection import PART_HSV_HIGH, PART_HSV_LOW, Detection
 from domain.work_cell import CameraIntrinsics
 
 MODEL_DIR = Path(__file__).parent / "models"
@@ -28,6 +28,7 @@ MIN_SIZE_M, MAX_SIZE_M = 0.02, 0.15  # the scenario's part size limits
 # A depth within this of where a resting part's top face would be is that face: the sensor's
 # noise at 1 m (a few mm) plus the size estimate's error plus the parts' rocking on the belt.
 ON_BELT_TOL_M = 0.02
+RING_MIN_PX = 4  # fewer part-coloured pixels at the resting height are edge blends, not a face
 
 
 def model_input(rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
@@ -98,7 +99,7 @@ class LearnedEstimator:
             gx, gy = c + 0.5 + float(out[1, r, c]), r + 0.5 + float(out[2, r, c])
             u, v = grid_to_pixel(gx, gy, w, h)
             size = float(np.clip(out[3, r, c] * SIZE_SCALE_M, MIN_SIZE_M, MAX_SIZE_M))
-            z = self._top_depth(depth_mm, u, v, size)
+            z = top_face_depth(rgb, depth_mm, u, v, size, self.k.f_px)
             if z is None:
                 continue
             top = self.k.back_project(u, v, z)
@@ -106,33 +107,46 @@ class LearnedEstimator:
             dets.append(Detection(p=top - np.array([0.0, 0.0, size / 2]), area_px=area))
         return dets
 
-    def _top_depth(self, depth_mm: np.ndarray, u: float, v: float, size_m: float) -> float | None:
-        """Distance to the top face (m) from the depth around its centre pixel.
 
-        The arm or the cup may hide part of the face, and their depth is not the part's. A part
-        resting on the belt has its top face ``size_m`` above the belt: the median of the valid
-        depths over the middle of the face (a square of half its edge) that agree with that
-        within ``ON_BELT_TOL_M`` is used when they are a fair share of the window. Otherwise the
-        part is lifted (in the cup, whose body covers the middle of the face): over the whole
-        face, of the depths above the belt, the farther quarter, i.e. the face around the cup."""
-        h, w = depth_mm.shape
-        z_belt = g.CAMERA_HEIGHT_ABOVE_BELT - size_m  # top face of a part resting on the belt
-        u0, v0 = int(round(u)), int(round(v))
+def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, size_m: float,
+                   f_px: float) -> float | None:
+    """Distance (m) to the top face of a part of edge ``size_m`` (m) centred at pixel (``u``,
+    ``v``) of a decoded frame (``rgb``, ``depth_mm`` as for ``model_input``) of a camera of focal
+    length ``f_px``.
 
-        def window(frac: float) -> np.ndarray:
-            r = max(1, int(round(frac * size_m * self.k.f_px / z_belt)))
-            win = depth_mm[max(0, v0 - r):min(h, v0 + r + 1), max(0, u0 - r):min(w, u0 + r + 1)]
-            return win[win > 0].astype(np.float64) / 1000.0
+    The arm or the cup may hide part of the face, and their depth is not the part's. A part
+    resting on the belt has its top face ``size_m`` above the belt: the median of the valid depths
+    that agree with that within ``ON_BELT_TOL_M`` is used when they are a fair share of the middle
+    of the face (a square of half its edge). When they are not, the cup is over the middle: either
+    hovering over a resting part, whose face shows as a ring around it at the resting height, or
+    holding the part up, whose face shows around it above that height. The part's colour tells
+    which: if, over the whole face, at least as many part-coloured pixels lie at the resting height
+    as above it, the part rests and their median is used; otherwise, of the depths above the belt,
+    the farther quarter, i.e. the face around the cup."""
+    h, w = depth_mm.shape
+    z_belt = g.CAMERA_HEIGHT_ABOVE_BELT - size_m  # top face of a part resting on the belt
+    u0, v0 = int(round(u)), int(round(v))
 
-        mid = window(0.25)
-        on_belt = mid[np.abs(mid - z_belt) < ON_BELT_TOL_M]
-        if on_belt.size and on_belt.size >= 0.3 * mid.size:
-            return float(np.median(on_belt))
-        face = window(0.45)
-        above = face[face < g.CAMERA_HEIGHT_ABOVE_BELT - 0.01]
-        if above.size:
-            return float(np.percentile(above, 75))
-        return float(np.median(mid)) if mid.size else None
+    def window(frac: float) -> tuple[slice, slice]:
+        r = max(1, int(round(frac * size_m * f_px / z_belt)))
+        return slice(max(0, v0 - r), min(h, v0 + r + 1)), slice(max(0, u0 - r), min(w, u0 + r + 1))
+
+    mid = depth_mm[window(0.25)].astype(np.float64) / 1000.0
+    mid = mid[mid > 0]
+    on_belt = mid[np.abs(mid - z_belt) < ON_BELT_TOL_M]
+    if on_belt.size and on_belt.size >= 0.3 * mid.size:
+        return float(np.median(on_belt))
+    rows, cols = window(0.45)
+    face = depth_mm[rows, cols].astype(np.float64) / 1000.0
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb[rows, cols]), cv2.COLOR_RGB2HSV)
+    coloured = face[(cv2.inRange(hsv, PART_HSV_LOW, PART_HSV_HIGH) > 0) & (face > 0)]
+    ring = coloured[np.abs(coloured - z_belt) < ON_BELT_TOL_M]
+    if ring.size >= RING_MIN_PX and ring.size >= np.count_nonzero(coloured < z_belt - ON_BELT_TOL_M):
+        return float(np.median(ring))
+    above = face[(face > 0) & (face < g.CAMERA_HEIGHT_ABOVE_BELT - 0.01)]
+    if above.size:
+        return float(np.percentile(above, 75))
+    return float(np.median(mid)) if mid.size else None
 
 
 def model_available(model_path: str | Path = DEFAULT_MODEL) -> str | None:

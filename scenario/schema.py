@@ -371,7 +371,10 @@ class PolicyConfig(Strict):
         default="none", description="policy: `none` (PDP 1, no budget), `fixed` (constant `pdp`), "
         "`heuristic` (rules on the belt's kinematics and the tracker's sd, domain/policy.py) or "
         "`learned` (a network trained with deep RL, run with ONNX Runtime: `learned_model`)")
-    pdp: float = Field(default=1.0, gt=0, le=1, description="`fixed`: the constant PDP")
+    pdp: float = Field(default=1.0, gt=0, le=1, description="`fixed`: the PDP it asks for; like every "
+                       "co-design policy's, it is raised to 1 while the cell has headroom and bounded "
+                       "by the floor and the cap, so a PDP held constant also needs `headroom`, "
+                       "`floor` and `guard` false")
     idle_pdp: float = Field(default=0.2, gt=0, le=1,
                             description="`heuristic`: PDP while the belt is empty and no part is due")
     track_pdp: float = Field(default=0.5, gt=0, le=1,

@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from domain import work_cell as g
 from domain.codec import decode_frame, encode_frame, slot_after, split_packets
 from domain.estimator import ClassicalEstimator, make_estimator
-from domain.pose_net import DEFAULT_MODEL, LearnedEstimator
+from domain.pose_net import DEFAULT_MODEL, LearnedEstimator, top_face_depth
 from domain.sensor import (
     MAX_SHADOW_PX,
     SensorModel,
@@ -147,6 +148,39 @@ def test_classical_estimator_finds_the_part_within_millimetres(sensed: tuple) ->
     dets = ClassicalEstimator(intrinsics(), 0.06).detect(rgb, depth)
     assert len(dets) == 1
     assert np.linalg.norm(dets[0].p - np.asarray(truth[0]["p"])) < 0.01
+
+
+def _part_under_cup(lift_m: float, size_m: float = 0.06) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """A frame (rgb, depth in mm) of an orange part under the grey suction cup, seen from straight
+    above at the image centre, with the face's true distance (m) and the focal length (px). On the
+    belt (``lift_m`` 0) the cup hovers 5 cm over the middle of the face with the wrist reaching
+    in from one side; lifted ``lift_m`` (m) in the cup, the cup's body stands on the face."""
+    k = intrinsics()
+    rgb = np.full((k.height, k.width, 3), 60, np.uint8)
+    depth = np.full((k.height, k.width), round(g.CAMERA_HEIGHT_ABOVE_BELT * 1000), np.uint16)
+    face_m = g.CAMERA_HEIGHT_ABOVE_BELT - size_m - lift_m
+    u, v = k.width // 2, k.height // 2
+    half = round(size_m / 2 * k.f_px / face_m)
+    rgb[v - half:v + half + 1, u - half:u + half + 1] = (242, 115, 13)
+    depth[v - half:v + half + 1, u - half:u + half + 1] = round(face_m * 1000)
+    yy, xx = np.mgrid[:k.height, :k.width]
+    if lift_m == 0:  # the hovering cup and the wrist: 15 % of the face left in view
+        cover = ((xx - u) ** 2 + (yy - v) ** 2 <= (0.9 * half) ** 2) | ((np.abs(yy - v) <= 0.9 * half) & (xx >= u))
+    else:
+        cover = (xx - u) ** 2 + (yy - v) ** 2 <= (0.6 * half) ** 2
+    rgb[cover] = 150
+    depth[cover] = round((face_m - 0.05) * 1000)
+    return rgb, depth, face_m, k.f_px
+
+
+def test_top_face_depth_is_the_part_not_the_cup_over_it() -> None:
+    # Resting on the belt under the hovering cup: the ring of the face around the cup is the part.
+    rgb, depth, face_m, f_px = _part_under_cup(0.0)
+    u, v = depth.shape[1] / 2, depth.shape[0] / 2
+    assert top_face_depth(rgb, depth, u, v, 0.06, f_px) == pytest.approx(face_m, abs=0.002)
+    # Lifted in the cup: the face around the cup, above the belt's resting height.
+    rgb, depth, face_m, f_px = _part_under_cup(0.05)
+    assert top_face_depth(rgb, depth, u, v, 0.06, f_px) == pytest.approx(face_m, abs=0.002)
 
 
 def test_learned_estimator_on_held_out_frames_keeps_its_recorded_accuracy(tmp_path: Path) -> None:
