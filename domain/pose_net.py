@@ -29,6 +29,10 @@ MIN_SIZE_M, MAX_SIZE_M = 0.02, 0.15  # the scenario's part size limits
 # noise at 1 m (a few mm) plus the size estimate's error plus the parts' rocking on the belt.
 ON_BELT_TOL_M = 0.02
 RING_MIN_PX = 4  # fewer part-coloured pixels at the resting height are edge blends, not a face
+# A part lifted in the cup shows at least this many part-coloured pixels above the resting height
+# for each one at it (those are blends of its edge with the belt); a part under the hovering cup
+# shows fewer (blends of its rim with the cup). In between, the face is too hidden to tell.
+LIFTED_RATIO = 2.0
 
 
 def model_input(rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
@@ -121,8 +125,9 @@ def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, si
     hovering over a resting part, whose face shows as a ring around it at the resting height, or
     holding the part up, whose face shows around it above that height. The part's colour tells
     which: if, over the whole face, at least as many part-coloured pixels lie at the resting height
-    as above it, the part rests and their median is used; otherwise, of the depths above the belt,
-    the farther quarter, i.e. the face around the cup."""
+    as above it, the part rests and their median is used; if ``LIFTED_RATIO`` times as many lie
+    above it, the part is lifted and, of the depths above the belt, the farther quarter, i.e. the
+    face around the cup, is used; in between, None: too little of the face shows to tell."""
     h, w = depth_mm.shape
     z_belt = g.CAMERA_HEIGHT_ABOVE_BELT - size_m  # top face of a part resting on the belt
     u0, v0 = int(round(u)), int(round(v))
@@ -141,8 +146,11 @@ def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, si
     hsv = cv2.cvtColor(np.ascontiguousarray(rgb[rows, cols]), cv2.COLOR_RGB2HSV)
     coloured = face[(cv2.inRange(hsv, PART_HSV_LOW, PART_HSV_HIGH) > 0) & (face > 0)]
     ring = coloured[np.abs(coloured - z_belt) < ON_BELT_TOL_M]
-    if ring.size >= RING_MIN_PX and ring.size >= np.count_nonzero(coloured < z_belt - ON_BELT_TOL_M):
+    raised = np.count_nonzero(coloured < z_belt - ON_BELT_TOL_M)
+    if ring.size >= RING_MIN_PX and ring.size >= raised:
         return float(np.median(ring))
+    if raised < LIFTED_RATIO * ring.size:
+        return None  # the cup hides too much of the face to tell: no height to measure
     above = face[(face > 0) & (face < g.CAMERA_HEIGHT_ABOVE_BELT - 0.01)]
     if above.size:
         return float(np.percentile(above, 75))

@@ -181,6 +181,11 @@ def test_top_face_depth_is_the_part_not_the_cup_over_it() -> None:
     # Lifted in the cup: the face around the cup, above the belt's resting height.
     rgb, depth, face_m, f_px = _part_under_cup(0.05)
     assert top_face_depth(rgb, depth, u, v, 0.06, f_px) == pytest.approx(face_m, abs=0.002)
+    # Most of the rim blended with the cup's depth: too little of the face to tell, no height.
+    rgb, depth, face_m, f_px = _part_under_cup(0.0)
+    rim = np.argwhere((depth == round(face_m * 1000)).ravel()).ravel()
+    depth.ravel()[rim[: len(rim) * 3 // 5]] = round((face_m - 0.03) * 1000)
+    assert top_face_depth(rgb, depth, u, v, 0.06, f_px) is None
 
 
 def test_learned_estimator_on_held_out_frames_keeps_its_recorded_accuracy(tmp_path: Path) -> None:
