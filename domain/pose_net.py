@@ -126,8 +126,9 @@ def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, si
     holding the part up, whose face shows around it above that height. The part's colour tells
     which: if, over the whole face, at least as many part-coloured pixels lie at the resting height
     as above it, the part rests and their median is used; if ``LIFTED_RATIO`` times as many lie
-    above it, the part is lifted and, of the depths above the belt, the farther quarter, i.e. the
-    face around the cup, is used; in between, None: too little of the face shows to tell."""
+    above it (or none shows the part's colour), the part is lifted and, of the depths above the
+    belt, the farther quarter, i.e. the face around the cup, is used; in between, None: too little
+    of the face shows to tell."""
     h, w = depth_mm.shape
     z_belt = g.CAMERA_HEIGHT_ABOVE_BELT - size_m  # top face of a part resting on the belt
     u0, v0 = int(round(u)), int(round(v))
