@@ -24,13 +24,17 @@ IN_VIEW_VISIBLE = 0.8  # share of the top face's pixel area that must be visible
 HIDDEN_VISIBLE = 0.3  # a part less visible than in view but at least this is partly hidden
 
 
+def _on_screen(part: dict[str, Any], width: int, height: int) -> bool:
+    return 0 <= part["u"] < width and 0 <= part["v"] < height
+
+
 def in_view(part: dict[str, Any], width: int, height: int) -> bool:
-    return (part["visible"] >= IN_VIEW_VISIBLE and 0 <= part["u"] < width and 0 <= part["v"] < height)
+    return part["visible"] >= IN_VIEW_VISIBLE and _on_screen(part, width, height)
 
 
 def partly_hidden(part: dict[str, Any], width: int, height: int) -> bool:
     return (not part["gripped"] and HIDDEN_VISIBLE <= part["visible"] < IN_VIEW_VISIBLE
-            and 0 <= part["u"] < width and 0 <= part["v"] < height)
+            and _on_screen(part, width, height))
 
 
 def evaluate(make: Callable[[CameraIntrinsics, float], Any], frames: list[bytes],
