@@ -57,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     notes = (f"Held-out test split: {len(frames)} frames of {len({lab.get('episode') for lab in labels})} episodes "
              f"(seeds {D.SPLIT_SEEDS['test']}+, disjoint from training), resolutions {', '.join(res)}, part edges "
              f"{sizes[0] * 1000:.0f}-{sizes[-1] * 1000:.0f} mm, randomised key/ambient/head light, D435 sensor "
-             f"model, JPEG + decimated lossless depth as the camera sends them. Partly hidden: parts on the belt "
-             f"30-80 % visible (under the arm or the hovering cup), matched within 40 mm in the belt plane. Detect time: CPU time of one "
+             f"model, JPEG + decimated lossless depth as the camera sends them. Partly hidden: parts not in "
+             f"the cup, 30-80 % visible (under the arm or the hovering cup), matched within 40 mm in the belt "
+             f"plane. Detect time: CPU time of one "
              f"thread, median per frame, after decoding (decode: {results['learned']['decode_ms_median']:.2f} ms, "
              f"common to both). Model: {args.model.name} ({args.model.stat().st_size} B).")
     print(head + rows + "\n\n" + notes)
