@@ -50,6 +50,9 @@ class World:
             for slot in range(self.pool):
                 part_pool.may_sleep(self.model, c, slot, True)
         mujoco.mj_forward(self.model, self.data)
+        # Each arm's servo range, gathered once: commands come 100 times a simulated second an arm.
+        self._ctrl_range = [(self.model.actuator_ctrlrange[c.act, 0].copy(),
+                             self.model.actuator_ctrlrange[c.act, 1].copy()) for c in self.cells]
         self._camera = CellCamera(self.model)
         self._loose: LooseParts | None = None
         self._on_belt: np.ndarray | None = None  # dof addresses of the parts the belt carries
@@ -197,9 +200,9 @@ class World:
         if len(q_target) != N_JOINTS:
             raise ValueError(f"cell {cell}: command has {len(q_target)} joint targets, the arm has "
                              f"{N_JOINTS} ({', '.join(JOINTS)})")
-        lo = self.model.actuator_ctrlrange[c.act, 0]
-        hi = self.model.actuator_ctrlrange[c.act, 1]
-        self.data.ctrl[c.act] = np.clip(np.asarray(q_target, dtype=float), lo, hi)
+        lo, hi = self._ctrl_range[cell]
+        # np.clip's result (elementwise max, then min) without its dispatch
+        self.data.ctrl[c.act] = np.minimum(np.maximum(np.asarray(q_target, dtype=float), lo), hi)
         if suction and not c.suction:
             for task in c.active.values():  # each opening of the valve is one grasp attempt
                 if task.grasp_us is None:
@@ -213,7 +216,10 @@ class World:
         elif not suction and c.gripped is not None:
             release(self.model, self.data, c)
             self._changed(c)
-        self._vacuum = [x for x in self.cells if x.suction and x.gripped is None]
+        # Only this cell can have joined or left the open cups (``_grip`` removes the others):
+        # rebuilt in cell order when it has, so a tick of N commands stays O(N).
+        if (c.suction and c.gripped is None) != any(x is c for x in self._vacuum):
+            self._vacuum = [x for x in self.cells if x.suction and x.gripped is None]
 
     def _grip(self, c: CellState, slot: int) -> None:
         """The cup of ``c`` has sealed on part ``slot``: weld it there."""
