@@ -59,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
              f"{sizes[0] * 1000:.0f}-{sizes[-1] * 1000:.0f} mm, randomised key/ambient/head light, D435 sensor "
              f"model, JPEG + decimated lossless depth as the camera sends them. Partly hidden: parts not in "
              f"the cup, 30-80 % visible (under the arm or the hovering cup), matched within 40 mm in the belt "
-             f"plane. Detect time: CPU time of one "
-             f"thread, median per frame, after decoding (decode: {results['learned']['decode_ms_median']:.2f} ms, "
+             f"plane. Detect time: CPU time of one thread, median per frame, after decoding "
+             f"(decode: {results['learned']['decode_ms_median']:.2f} ms, "
              f"common to both). Model: {args.model.name} ({args.model.stat().st_size} B).")
     print(head + rows + "\n\n" + notes)
     args.out.mkdir(parents=True, exist_ok=True)
