@@ -20,14 +20,17 @@ SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
 
 def spawn_plan(sc: Scenario, rng: np.random.Generator, step_us: int) -> list[tuple[int, dict[str, float]]]:
     """When and which parts one cell's belt receives over the run of ``sc``: (time us,
-    ``World.spawn`` keyword arguments), on the physics step grid of ``step_us`` (us). Spawn jitter,
-    lateral offset, yaw, size and mass are drawn from ``rng`` (a spread of 0 draws nothing, so
-    adding a spread to a scenario leaves the other draws of the stream unchanged)."""
+    ``World.spawn`` keyword arguments), on the physics step grid of ``step_us`` (us). The belt's
+    phase (``first_object_spread_s``), spawn jitter, lateral offset, yaw, size and mass are drawn
+    from ``rng`` (a spread of 0 draws nothing, so adding a spread to a scenario leaves the other
+    draws of the stream unchanged)."""
     cfg = sc.work_cell
     period = int(cfg.object_period_s * 1e6)
     jitter = int(cfg.object_jitter_s * 1e6)
     plan = []
     t = int(cfg.first_object_s * 1e6)
+    if cfg.first_object_spread_s:  # this belt's phase against the others'
+        t += int(rng.integers(0, int(cfg.first_object_spread_s * 1e6) + 1))
     while t < sc.duration_us:
         dt = int(rng.integers(-jitter, jitter + 1)) if jitter else 0
         at = max(0, (t + dt) // step_us * step_us)

@@ -260,6 +260,10 @@ class WorkCellConfig(Strict):
     object_period_s: float = Field(default=4.0, gt=0.5, description="time between objects, s")
     object_jitter_s: float = Field(default=0.0, ge=0, description="uniform jitter on spawn times, s")
     first_object_s: float = Field(default=0.5, ge=0, description="spawn time of the first object, s")
+    first_object_spread_s: float = Field(
+        default=0.0, ge=0, description="each cell's first object comes later by uniform(0, this), drawn "
+        "per cell, s: belts out of phase (0: every belt's first object at first_object_s)"
+    )
     object_size_m: float = Field(default=0.06, gt=0.02, le=0.15, description="object edge length, m")
     object_mass_kg: float = Field(default=0.3, gt=0, le=5.0, description="object mass, kg")
     object_size_spread_m: float = Field(
@@ -329,6 +333,10 @@ class CameraConfig(Strict):
         "mm, on top of `sensor_model` (noise makes 16-bit depth nearly incompressible)")
     readout_latency_us: int = Field(default=2000, ge=1, description="capture to camera node, us")
     mtu_bytes: int = Field(default=1500, ge=576, le=9000, description="IP packet size limit, bytes")
+    frame_keep: Literal["bernoulli", "spaced"] = Field(
+        default="bernoulli", description="which frames the camera keeps at its PDP: `bernoulli`, each "
+        "independently with probability PDP; `spaced`, a share PDP of them spread evenly (a credit "
+        "of the PDPs, started at a random phase; domain/frame_keep.py)")
 
 
 class RobotConfig(Strict):

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from domain.codec import encode_frame, slot_after, split_packets
+from domain.frame_keep import FrameKeep
 from domain.partitions import load_route
 from domain.sensor import sense, sensor_for
 from fabric.compute import ComputeNode
@@ -31,7 +32,7 @@ class CameraFederate(Federate):
         self.frames = self.table("frames")
         self.frames_kept = 0
         self.bytes_kept = 0
-        self.keep_rng = self.rng("pdp")
+        self.keeper = FrameKeep(self.scenario.camera.frame_keep, self.rng("pdp"))
         self.pdp = 1.0
         self.pdb_us: int | None = None
         self.frame_id = 0  # captures
@@ -51,7 +52,7 @@ class CameraFederate(Federate):
         sc = self.scenario
         fid = self.frame_id
         self.frame_id += 1
-        keep = bool(self.keep_rng.random() < self.pdp)
+        keep = self.keeper.keep(self.pdp)
         row: dict[str, Any] = {"loop": self.loop, "frame_id": fid, "capture_us": image.capture_us,
                                "pdp": self.pdp, "kept": keep, "bytes": 0, "packets": 0, "ready_us": None}
         if not keep:

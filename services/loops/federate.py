@@ -16,6 +16,7 @@ from domain.codec import slot_after, split_packets
 from domain.controller import PickController
 from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
 from domain.edges import load_plan
+from domain.frame_keep import FrameKeep
 from domain.frame_model import RUN_FILE, camera_settings, model_for
 from domain.hall import SERVO_LAG_S
 from domain.kinematics import ArmKinematics
@@ -46,7 +47,7 @@ class AbstractLoop:
     index: int
     ctl: PickController
     tracker: Tracker
-    keep_rng: np.random.Generator
+    keeper: FrameKeep
     size_rng: np.random.Generator
     error_rng: np.random.Generator
     camera_cpu: ComputeNode
@@ -88,7 +89,8 @@ class LoopsFederate(Federate):
                 index=i,
                 ctl=PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S),
                 tracker=Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)),
-                keep_rng=self.rng(f"camera-{i}/pdp"), size_rng=self.rng(f"camera-{i}/size"),
+                keeper=FrameKeep(sc.camera.frame_keep, self.rng(f"camera-{i}/pdp")),
+                size_rng=self.rng(f"camera-{i}/size"),
                 error_rng=self.rng(f"edge-{i}/error"),
                 camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),
                 edge_cpu=ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute")),
@@ -143,7 +145,7 @@ class LoopsFederate(Federate):
     # ---- camera side ----------------------------------------------------------------------------
     def _camera_frame(self, lp: AbstractLoop, capture_us: int, objects: list[Part]) -> None:
         lp.frames += 1
-        if not lp.keep_rng.random() < lp.pdp:
+        if not lp.keeper.keep(lp.pdp):
             return
         lp.frames_kept += 1
         fid = lp.frame_id

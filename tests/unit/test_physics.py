@@ -175,6 +175,23 @@ def test_part_spreads_are_validated() -> None:
     assert all(b - a >= 4_000_000 - 800_000 for (a, _), (b, _) in zip(plan, plan[1:], strict=False))
 
 
+def test_belt_phases_spread_the_first_parts_and_keep_the_period() -> None:
+    """With ``first_object_spread_s`` each cell's first part comes later by its own draw, the
+    parts after it a period apart; without it the stream is drawn as before."""
+    spread = {"object_period_s": 4.0, "first_object_s": 0.5, "first_object_spread_s": 4.0}
+    sc = parse_scenario({"work_cell": spread, "duration_s": 30})
+    firsts = [spawn_plan(sc, np.random.default_rng(s), 1000)[0][0] for s in range(40)]
+    assert all(500_000 <= t <= 4_500_000 for t in firsts)
+    assert max(firsts) - min(firsts) > 2_000_000  # the belts are out of phase, not bunched
+    plan = spawn_plan(sc, np.random.default_rng(7), 1000)
+    assert {b - a for (a, _), (b, _) in zip(plan, plan[1:], strict=False)} == {4_000_000}
+    flat = parse_scenario({"work_cell": {"object_period_s": 4.0, "first_object_s": 0.5}, "duration_s": 30})
+    same = parse_scenario({"work_cell": {**spread, "first_object_spread_s": 0.0}, "duration_s": 30})
+    assert spawn_plan(flat, np.random.default_rng(7), 1000) == spawn_plan(same, np.random.default_rng(7), 1000)
+    with pytest.raises(ScenarioError, match="first_object_spread_s"):
+        parse_scenario({"work_cell": {"first_object_spread_s": -1.0}})
+
+
 # ---- picking --------------------------------------------------------------------------------------
 class SnapshotWorld(World):
     """A world that keeps every body's pose after each ``advance_to``, with sleeping on or off."""

@@ -46,6 +46,10 @@ def test_shipped_specs_load_and_expand() -> None:
     assert len(points) == 18 * 2 * 3
     assert {p.scenario.policy.name for p in points} == {"none", "heuristic"}
     assert all(p.scenario.detailed_loops == 0 and p.scenario.duration_s == 60.0 for p in points)
+    fast = expand(load_spec(ROOT / "configs" / "sweeps" / "fast_cells.yaml", SCENARIOS), SCENARIOS)
+    assert len(fast) == 4 * 3 * 9 * 3
+    assert {p.scenario.camera.frame_keep for p in fast} == {"bernoulli", "spaced"}
+    assert {p.scenario.work_cell.first_object_spread_s for p in fast} == {0.0, 4.0, 6.0}
 
 
 def test_unknown_field_is_named_with_the_allowed_ones() -> None:

@@ -18,6 +18,7 @@ from domain.arm import SERVO_LAG_S
 from domain.codec import slot_after
 from domain.controller import PickController
 from domain.edge_side import CoDesign, default_limits, update_tracks
+from domain.frame_keep import FrameKeep
 from domain.frame_model import load_frame_model
 from domain.loop_state import LoopState
 from domain.policy import Qos
@@ -98,6 +99,7 @@ class PickLoopEnv(gym.Env):
         self.codesign = CoDesign(bounds, cell, loops, sc.camera.fps, default_limits(bounds, sc))
         self.rng = {name: rng(ep_seed, f"policy-env/{name}")
                     for name in ("keep", "net", "error", "compute", "phase")}
+        self.keeper = FrameKeep(sc.camera.frame_keep, self.rng["keep"])  # as the scenario's cameras
         self.last_frame_us: int | None = None
         self.pdp_bar = float(self.rng["phase"].uniform(0.25, 1.0))  # the other loops' recent PDP
         self.qos_camera = Qos(1.0, None)  # what the camera applies until told otherwise
@@ -234,7 +236,7 @@ class PickLoopEnv(gym.Env):
         estimated, or dropped."""
         self.stats["frames"] += 1
         qos = self.qos_camera
-        if not self.rng["keep"].random() < qos.pdp:
+        if not self.keeper.keep(qos.pdp):
             return
         self.stats["frames_kept"] += 1
         enter = slot_after(t + self._job_us("compress"), SLOT_US)
