@@ -3,11 +3,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
 
-KeepMode = Literal["bernoulli", "spaced"]
+from scenario.schema import FrameKeepMode
 
 
 class FrameKeep:
@@ -19,7 +17,7 @@ class FrameKeep:
     at a uniform draw, so each frame is still kept with probability PDP over the cameras' phases.
     """
 
-    def __init__(self, mode: KeepMode, rng: np.random.Generator) -> None:
+    def __init__(self, mode: FrameKeepMode, rng: np.random.Generator) -> None:
         self.spaced = mode == "spaced"
         self.rng = rng
         self.credit: float | None = None

@@ -304,6 +304,10 @@ class WorkCellConfig(Strict):
         return self
 
 
+# Which frames a camera keeps at its PDP (domain/frame_keep.py).
+FrameKeepMode = Literal["bernoulli", "spaced"]
+
+
 class CameraConfig(Strict):
     """The cell cameras: a D435-class RGB-D sensor and the camera node's compression.
 
@@ -333,7 +337,7 @@ class CameraConfig(Strict):
         "mm, on top of `sensor_model` (noise makes 16-bit depth nearly incompressible)")
     readout_latency_us: int = Field(default=2000, ge=1, description="capture to camera node, us")
     mtu_bytes: int = Field(default=1500, ge=576, le=9000, description="IP packet size limit, bytes")
-    frame_keep: Literal["bernoulli", "spaced"] = Field(
+    frame_keep: FrameKeepMode = Field(
         default="bernoulli", description="which frames the camera keeps at its PDP: `bernoulli`, each "
         "independently with probability PDP; `spaced`, a share PDP of them spread evenly (a credit "
         "of the PDPs, started at a random phase; domain/frame_keep.py)")
