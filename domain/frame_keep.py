@@ -20,14 +20,13 @@ class FrameKeep:
     def __init__(self, mode: FrameKeepMode, rng: np.random.Generator) -> None:
         self.spaced = mode == "spaced"
         self.rng = rng
-        self.credit: float | None = None
+        # The stream serves the keep alone: the phase is its first draw either way.
+        self.credit = float(rng.random()) if self.spaced else 0.0
 
     def keep(self, pdp: float) -> bool:
         """Whether the frame captured now is kept at ``pdp``."""
         if not self.spaced:
             return bool(self.rng.random() < pdp)
-        if self.credit is None:
-            self.credit = float(self.rng.random())
         self.credit += pdp
         if self.credit >= 1.0:
             self.credit -= 1.0
