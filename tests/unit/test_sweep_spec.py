@@ -19,6 +19,7 @@ from experiments.summary import (
     wilson,
 )
 from interfaces.cli import main
+from scenario.schema import load_scenario
 
 ROOT = Path(__file__).parents[2]
 SCENARIOS = ROOT / "configs" / "scenarios"
@@ -50,6 +51,19 @@ def test_shipped_specs_load_and_expand() -> None:
     assert len(fast) == 4 * 3 * 9 * 3
     assert {p.scenario.camera.frame_keep for p in fast} == {"bernoulli", "spaced"}
     assert {p.scenario.work_cell.first_object_spread_s for p in fast} == {0.0, 4.0, 6.0}
+
+
+def test_co_design_keeps_frames_spaced_where_its_results_were_not_measured_otherwise() -> None:
+    """co_design ships the spaced keep; the specs measured with each frame drawn alone (and the
+    sensitivity sweeps, whose loss rate is each frame lost alone) keep that."""
+    for name in ("co_design", "co_design_learned"):
+        assert load_scenario(SCENARIOS / f"{name}.yaml").camera.frame_keep == "spaced"
+    keeps = {name: {p.scenario.camera.frame_keep
+                    for p in expand(load_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml", SCENARIOS), SCENARIOS)}
+             for name in ("family", "overload", "codesign", "codesign_family", "sensitivity", "sensitivity_detailed")}
+    assert keeps == {"family": {"spaced"}, "overload": {"bernoulli"}, "codesign": {"bernoulli"},
+                     "codesign_family": {"bernoulli"}, "sensitivity": {"bernoulli"},
+                     "sensitivity_detailed": {"bernoulli"}}
 
 
 def test_unknown_field_is_named_with_the_allowed_ones() -> None:
