@@ -116,6 +116,10 @@ class SweepSpec(SpecModel):
     variants: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="name -> {dotted field: value}: series that differ in "
         "several fields, swept as the grid field `variant`")
+    exclude: list[dict[str, Any]] = Field(
+        default_factory=list, max_length=32, description="grid combinations not to run: each entry maps grid "
+        "fields to one of their values, and every combination matching all of an entry's fields is "
+        "left out, e.g. `{policy.name: none, policy.floor: false}` where a series ignores a field")
     scale: dict[str, str] = Field(
         default_factory=dict, description="grid field -> scenario field whose value multiplies it "
         "in every point, e.g. `loops: hall.inf_layout.gnb_count` sweeps loops per gNB (the grid, "
@@ -164,6 +168,22 @@ class SweepSpec(SpecModel):
         return self
 
     @model_validator(mode="after")
+    def _exclusions(self) -> SweepSpec:
+        for i, entry in enumerate(self.exclude):
+            if not entry:
+                raise ValueError(f"exclude[{i}] names no field: give grid fields and a value of each")
+            for field, value in entry.items():
+                if field not in self.grid:
+                    raise ValueError(f"exclude[{i}].{field}: not a grid field; grid fields: "
+                                     f"{', '.join(self.grid)}")
+                values = self.grid[field]
+                allowed = values.values() if isinstance(values, Range) else values
+                if value not in allowed:
+                    raise ValueError(f"exclude[{i}].{field} = {value!r} is not one of its grid values "
+                                     f"({', '.join(map(repr, allowed))})")
+        return self
+
+    @model_validator(mode="after")
     def _bounded(self) -> SweepSpec:
         for path, values in self.grid.items():
             if isinstance(values, list) and len(values) > MAX_AXIS_VALUES:
@@ -174,15 +194,26 @@ class SweepSpec(SpecModel):
         return self
 
     def points(self) -> int:
-        """Grid combinations x seeds (the most seeds ``repeat_until`` may add), counted without
-        expanding the grid."""
+        """Grid combinations not ``exclude``d x seeds (the most seeds ``repeat_until`` may add),
+        counted without expanding the grid."""
         seeds = len(self.seed_list()) if isinstance(self.seeds, list) else self.seeds
         if self.repeat_until is not None:
             seeds = max(seeds, self.repeat_until.max_seeds)
-        combos = 1
-        for values in self.grid.values():
-            combos *= int(values.count()) if isinstance(values, Range) else len(values)
-        return combos * seeds
+        named = {f for entry in self.exclude for f in entry}
+        combos = named_combos = 1
+        for field, values in self.grid.items():
+            n = int(values.count()) if isinstance(values, Range) else len(values)
+            if field in named:
+                named_combos *= n
+            else:
+                combos *= n
+        if named and named_combos <= MAX_SPEC_POINTS:
+            # Exclusions counted over the fields they name; beyond the limit, the grid's count
+            # stands as an upper bound.
+            grid = {f: v for f, v in self.grid_values().items() if f in named}
+            named_combos = sum(not self.excluded(dict(zip(grid, c, strict=True)))
+                               for c in itertools.product(*grid.values()))
+        return combos * named_combos * seeds
 
     @model_validator(mode="after")
     def _capacity_axis(self) -> SweepSpec:
@@ -201,6 +232,12 @@ class SweepSpec(SpecModel):
         if self.capacity.group == self.capacity.x:
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
+        if self.capacity.reference is not None and self.points() <= MAX_SPEC_POINTS:
+            names = self.series_names()
+            if self.capacity.reference not in names:
+                shown = ", ".join(repr(n) for n in names[:12]) + (", ..." if len(names) > 12 else "")
+                raise ValueError(f"capacity.reference = {self.capacity.reference!r} names no series of "
+                                 f"the grid; its series: {shown}")
         return self
 
     def seed_list(self) -> list[int]:
@@ -222,9 +259,21 @@ class SweepSpec(SpecModel):
         return out
 
     def combinations(self) -> list[dict[str, Any]]:
-        """Every grid combination, in grid order (the last field varies fastest)."""
+        """Every grid combination not ``exclude``d, in grid order (the last field varies fastest)."""
         grid = self.grid_values()
-        return [dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values())]
+        combos = (dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values()))
+        return [c for c in combos if not self.excluded(c)]
+
+    def excluded(self, values: dict[str, Any]) -> bool:
+        """Whether the grid combination ``values`` matches an ``exclude`` entry."""
+        return any(all(values.get(f) == v for f, v in entry.items()) for entry in self.exclude)
+
+    def series_names(self) -> list[str]:
+        """The names of the series the capacity rule reads (``summary.series_name``): the grid's
+        combinations without the load axis and the group, in grid order."""
+        inner = [f for f in self.grid if f not in (self.capacity.x, self.capacity.group)]
+        names = dict.fromkeys(", ".join(f"{f}={c[f]}" for f in inner) or "all" for c in self.combinations())
+        return list(names)
 
 
 class SweepError(ValueError):
@@ -308,6 +357,9 @@ def _current_paths(data: dict[str, Any]) -> dict[str, Any]:
         data["variants"] = {name: ({current_path(k) if isinstance(k, str) else k: v for k, v in fields.items()}
                                    if isinstance(fields, dict) else fields)
                             for name, fields in data["variants"].items()}
+    if isinstance(data.get("exclude"), list):
+        data["exclude"] = [{current_path(k) if isinstance(k, str) else k: v for k, v in entry.items()}
+                           if isinstance(entry, dict) else entry for entry in data["exclude"]]
     for section, key in (("capacity", "x"), ("capacity", "group"), ("figures", "map_y")):
         part = data.get(section)
         if isinstance(part, dict) and isinstance(part.get(key), str):

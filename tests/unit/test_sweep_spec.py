@@ -368,6 +368,40 @@ def test_the_capacity_group_must_be_a_grid_field_other_than_the_load() -> None:
     assert "load axis" in errors_of(spec(capacity={"group": "loops"}))[0][1]
 
 
+def test_excluded_combinations_are_not_run_and_the_family_runs_pdp_1_once() -> None:
+    s = parse_spec(spec(grid={"policy.name": ["none", "heuristic"], "policy.floor": [True, False],
+                              "loops": [2, 4]}, seeds=2,
+                        exclude=[{"policy.name": "none", "policy.floor": False}]), SCENARIOS)
+    assert s.points() == 3 * 2 * 2
+    points = expand(s, SCENARIOS)
+    assert len(points) == s.points()
+    assert {(p.scenario.policy.name, p.scenario.policy.floor) for p in points} == {
+        ("none", True), ("heuristic", True), ("heuristic", False)}
+    family = load_spec(ROOT / "configs" / "sweeps" / "family.yaml", SCENARIOS)
+    assert family.points() == 13 * 5 * 15 * 3, "13 cells x 5 series x 15 loads x 3 seeds"
+    assert "policy.name=none, policy.floor=False" not in family.series_names()
+
+
+def test_bad_exclusions_are_named_with_what_is_allowed() -> None:
+    grid = {"policy.name": ["none", "heuristic"], "loops": [2, 4]}
+    [(field, msg)] = errors_of(spec(grid=grid, exclude=[{"policy.nam": "none"}]))
+    assert field == "(sweep)" and "exclude[0].policy.nam: not a grid field" in msg and "policy.name" in msg
+    [(field, msg)] = errors_of(spec(grid=grid, exclude=[{"policy.name": "learned"}]))
+    assert "exclude[0].policy.name = 'learned' is not one of its grid values ('none', 'heuristic')" in msg
+    [(field, msg)] = errors_of(spec(grid=grid, exclude=[{}]))
+    assert "exclude[0] names no field" in msg
+
+
+def test_the_capacity_reference_must_name_a_series_that_runs() -> None:
+    grid = {"policy.name": ["none", "heuristic"], "loops": [2, 4]}
+    [(field, msg)] = errors_of(spec(grid=grid, capacity={"reference": "policy.name=nne"}))
+    assert "capacity.reference = 'policy.name=nne' names no series" in msg
+    assert "'policy.name=none', 'policy.name=heuristic'" in msg
+    [(field, msg)] = errors_of(spec(grid=grid, capacity={"reference": "policy.name=none"},
+                                    exclude=[{"policy.name": "none"}]))
+    assert "names no series" in msg, "an excluded series is no reference"
+
+
 def test_the_map_field_must_be_a_grid_field() -> None:
     assert "figures.map_y" in errors_of(spec(figures={"map_y": "seed"}))[0][1]
 
