@@ -32,6 +32,9 @@ class SpecModel(BaseModel):
 # a spec at most MAX_SPEC_POINTS points (grid combinations x seeds); a coordinator may allow fewer.
 MAX_AXIS_VALUES = 1000
 MAX_SPEC_POINTS = 100_000
+# Series (and combinations of the fields ``exclude`` names) walked one by one to count or check
+# them; beyond it a spec's count is the grid's, an upper bound, and its reference is not checked.
+MAX_SERIES = 4096
 
 
 class Range(SpecModel):
@@ -207,9 +210,8 @@ class SweepSpec(SpecModel):
                 named_combos *= n
             else:
                 combos *= n
-        if named and named_combos <= MAX_SPEC_POINTS:
-            # Exclusions counted over the fields they name; beyond the limit, the grid's count
-            # stands as an upper bound.
+        if named and named_combos <= MAX_SERIES:
+            # counted over the fields the entries name, not over the whole grid
             grid = {f: v for f, v in self.grid_values().items() if f in named}
             named_combos = sum(not self.excluded(dict(zip(grid, c, strict=True)))
                                for c in itertools.product(*grid.values()))
@@ -232,8 +234,7 @@ class SweepSpec(SpecModel):
         if self.capacity.group == self.capacity.x:
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
-        if self.capacity.reference is not None and self.points() <= MAX_SPEC_POINTS:
-            names = self.series_names()
+        if self.capacity.reference is not None and (names := self.series_names()) is not None:
             if self.capacity.reference not in names:
                 shown = ", ".join(repr(n) for n in names[:12]) + (", ..." if len(names) > 12 else "")
                 raise ValueError(f"capacity.reference = {self.capacity.reference!r} names no series of "
@@ -268,12 +269,22 @@ class SweepSpec(SpecModel):
         """Whether the grid combination ``values`` matches an ``exclude`` entry."""
         return any(all(values.get(f) == v for f, v in entry.items()) for entry in self.exclude)
 
-    def series_names(self) -> list[str]:
-        """The names of the series the capacity rule reads (``summary.series_name``): the grid's
-        combinations without the load axis and the group, in grid order."""
-        inner = [f for f in self.grid if f not in (self.capacity.x, self.capacity.group)]
-        names = dict.fromkeys(", ".join(f"{f}={c[f]}" for f in inner) or "all" for c in self.combinations())
-        return list(names)
+    def series_names(self) -> list[str] | None:
+        """The names of the series the capacity rule reads (``summary.series_name``), in grid
+        order: the combinations of the grid fields other than the load axis and the group, less
+        those an ``exclude`` entry of only such fields matches; None where there are more than
+        ``MAX_SERIES``."""
+        inner = {f: v for f, v in self.grid_values().items()
+                 if f not in (self.capacity.x, self.capacity.group)}
+        if math.prod(len(v) for v in inner.values()) > MAX_SERIES:
+            return None
+        whole = [e for e in self.exclude if set(e) <= set(inner)]
+        names = []
+        for combo in itertools.product(*inner.values()):
+            values = dict(zip(inner, combo, strict=True))
+            if not any(all(values[f] == v for f, v in e.items()) for e in whole):
+                names.append(", ".join(f"{f}={v}" for f, v in values.items()) or "all")
+        return names
 
 
 class SweepError(ValueError):
