@@ -28,6 +28,19 @@ def object_pool_size(sc: Scenario) -> int:
     return math.ceil(transit_s / max(shortest_s, 0.1)) + 2
 
 
+# The constraint arena of mjData (contacts, constraint rows, solver scratch). MuJoCo's default
+# grows with the square of the degrees of freedom: 16 GB of address space for 160 cells of 17 pool
+# parts each, more than the host can reserve at 240. What a step uses grows with the cells: 3.6 MB
+# for 40 cells with every belt full (60 contacts a cell), so 4 MB a cell leaves a margin of 40x.
+ARENA_BASE_MB = 64
+ARENA_PER_CELL_MB = 4
+
+
+def arena_mb(cells: int) -> int:
+    """The mjData arena (MB) of a hall of ``cells`` work cells."""
+    return ARENA_BASE_MB + ARENA_PER_CELL_MB * cells
+
+
 def park_position(slot: int) -> tuple[float, float, float]:
     """Where pool slot ``slot`` waits (m, relative to the cell origin)."""
     return (-0.6 + 0.2 * slot, -1.2, PARK_Z)
@@ -96,6 +109,7 @@ def _hall_xml(sc: Scenario) -> str:
     <!-- near clip 5 cm: the arm may pass close under the cell camera -->
     <map znear="0.05" zfar="100"/>
   </visual>
+  <size memory="{arena_mb(sc.loops)}M"/>
   <statistic extent="1" center="0 0 0.8"/>
   <asset>
     <texture name="floor_tex" type="2d" builtin="checker" rgb1=".55 .55 .52" rgb2=".48 .48 .45" width="256" height="256"/>

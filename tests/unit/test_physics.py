@@ -12,7 +12,7 @@ import pytest
 from domain import work_cell as g
 from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
 from domain.controller import PickController
-from domain.hall import build_mjcf, object_pool_size
+from domain.hall import arena_mb, build_mjcf, build_model, object_pool_size
 from domain.kinematics import ArmKinematics
 from domain.world import CHECK_PERIOD_US, World, spawn_plan
 from fabric import native
@@ -64,6 +64,23 @@ def test_hall_mjcf_compiles_and_steps_10_s_without_warnings(loops: int) -> None:
         mujoco.mj_step(model, data)
     assert no_warnings(data), [w.number for w in data.warning]
     assert np.isfinite(data.qpos).all()
+
+
+@pytest.mark.slow
+def test_the_largest_hall_of_the_family_compiles_with_an_arena_that_grows_with_its_cells() -> None:
+    """240 work cells of the family's slowest, densest corner (0.1 m/s, a part every 2 +- 0.6 s:
+    17 pool parts a cell, 25 920 degrees of freedom), where MuJoCo's default arena, growing with
+    their square, could not be reserved."""
+    hall = {"work_cells_per_row": 16, "work_cell_pitch_m": [4.0, 4.0]}
+    cell = {"belt_speed_m_s": 0.1, "object_period_s": 2.0, "object_jitter_s": 0.6}
+    small = build_model(parse_scenario({"loops": 2, "hall": hall, "work_cell": cell}))
+    assert small.narena == arena_mb(2) * 2**20
+    model = build_model(parse_scenario({"loops": 240, "hall": hall, "work_cell": cell}))
+    assert model.nv == 240 * 6 * (1 + 17) and model.narena == arena_mb(240) * 2**20
+    data = mujoco.MjData(model)
+    for _ in range(10):
+        mujoco.mj_step(model, data)
+    assert no_warnings(data), [w.number for w in data.warning]
 
 
 def test_world_with_varied_parts_steps_10_s_without_warnings() -> None:
