@@ -17,6 +17,7 @@ from typing import Any, get_args
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from experiments.summary import series_name
 from scenario.schema import Scenario, ScenarioError, current_path, load_scenario, shipped_names
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
@@ -265,9 +266,11 @@ class SweepSpec(SpecModel):
         combos = (dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values()))
         return [c for c in combos if not self.excluded(c)]
 
-    def excluded(self, values: dict[str, Any]) -> bool:
-        """Whether the grid combination ``values`` matches an ``exclude`` entry."""
-        return any(all(values.get(f) == v for f, v in entry.items()) for entry in self.exclude)
+    def excluded(self, values: dict[str, Any], entries: list[dict[str, Any]] | None = None) -> bool:
+        """Whether the grid combination ``values`` matches an ``exclude`` entry (of ``entries``,
+        by default all of them)."""
+        return any(all(values.get(f) == v for f, v in entry.items())
+                   for entry in (self.exclude if entries is None else entries))
 
     def series_names(self) -> list[str] | None:
         """The names of the series the capacity rule reads (``summary.series_name``), in grid
@@ -279,12 +282,8 @@ class SweepSpec(SpecModel):
         if math.prod(len(v) for v in inner.values()) > MAX_SERIES:
             return None
         whole = [e for e in self.exclude if set(e) <= set(inner)]
-        names = []
-        for combo in itertools.product(*inner.values()):
-            values = dict(zip(inner, combo, strict=True))
-            if not any(all(values[f] == v for f, v in e.items()) for e in whole):
-                names.append(", ".join(f"{f}={v}" for f, v in values.items()) or "all")
-        return names
+        combos = (dict(zip(inner, c, strict=True)) for c in itertools.product(*inner.values()))
+        return [series_name(c, list(inner)) for c in combos if not self.excluded(c, whole)]
 
 
 class SweepError(ValueError):
