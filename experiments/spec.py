@@ -236,7 +236,9 @@ class SweepSpec(SpecModel):
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
         if self.capacity.reference is not None and (names := self.series_names()) is not None:
-            if self.capacity.reference not in names:
+            # The reference names a series, or part of one (read within each layout or group).
+            wanted = set(self.capacity.reference.split(", "))
+            if not any(wanted <= set(name.split(", ")) for name in names):
                 shown = ", ".join(repr(n) for n in names[:12]) + (", ..." if len(names) > 12 else "")
                 raise ValueError(f"capacity.reference = {self.capacity.reference!r} names no series of "
                                  f"the grid; its series: {shown}")

@@ -32,6 +32,8 @@ def layout_spec(**fields: Any) -> dict[str, Any]:
                             "scale": {"loops": "hall.inf_layout.gnb_count"}, "seeds": 1,
                             "capacity": {"reference": "policy.name=none"}}
     data.update(fields)
+    if "policy.name" not in data["grid"]:  # no policy series, so no reference among them
+        data["capacity"] = {k: v for k, v in data["capacity"].items() if k != "reference"}
     return data
 
 

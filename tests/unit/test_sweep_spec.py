@@ -400,6 +400,10 @@ def test_the_capacity_reference_must_name_a_series_that_runs() -> None:
     [(field, msg)] = errors_of(spec(grid=grid, capacity={"reference": "policy.name=none"},
                                     exclude=[{"policy.name": "none"}]))
     assert "names no series" in msg, "an excluded series is no reference"
+    partial = parse_spec(spec(grid={"variant": ["a", "b"], **grid}, variants={"a": {"duration_s": 2.0},
+                                                                              "b": {"duration_s": 3.0}},
+                              capacity={"reference": "policy.name=none"}), SCENARIOS)
+    assert partial.capacity.reference == "policy.name=none", "part of a series: read within each variant"
 
 
 def test_the_map_field_must_be_a_grid_field() -> None:
