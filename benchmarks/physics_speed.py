@@ -1,5 +1,6 @@
 """Physics speed (``python -m benchmarks.physics_speed``): the hall's real-time factor for N cells
-without rendering, and what rendering one detailed loop costs.
+without rendering, its CPU time a cell and step and the speed that bounds on this host's cores,
+and what rendering one detailed loop costs.
 
 Every cell works as in a run; the real-time factor counts only the physics (``World`` stepping,
 spawns, commands), the controllers' time is reported apart. Results: docs/physics.md, "Tests
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -23,29 +25,33 @@ ROOT = Path(__file__).parents[1]
 
 
 class TimedWorld(World):
-    """A World that adds up the wall time spent in the physics."""
+    """A World that adds up the wall time and the CPU time (this thread's, which steps it) spent
+    in the physics. The CPU time holds on a host busy with other work, where the wall time
+    stretches."""
 
     physics_s = 0.0
+    physics_cpu_s = 0.0
 
-    def advance_to(self, t_us: int) -> None:
-        t0 = time.perf_counter()
-        super().advance_to(t_us)
+    def _timed(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = fn(*args, **kwargs)
         self.physics_s += time.perf_counter() - t0
-
-    def spawn(self, *args: Any, **kwargs: Any) -> Any:
-        t0 = time.perf_counter()
-        out = super().spawn(*args, **kwargs)
-        self.physics_s += time.perf_counter() - t0
+        self.physics_cpu_s += time.thread_time() - c0
         return out
 
+    def advance_to(self, t_us: int) -> None:
+        self._timed(super().advance_to, t_us)
+
+    def spawn(self, *args: Any, **kwargs: Any) -> Any:
+        return self._timed(super().spawn, *args, **kwargs)
+
     def command(self, *args: Any, **kwargs: Any) -> None:
-        t0 = time.perf_counter()
-        super().command(*args, **kwargs)
-        self.physics_s += time.perf_counter() - t0
+        self._timed(super().command, *args, **kwargs)
 
 
-def hall_speed(n: int, seconds: float, seed: int) -> dict[str, Any]:
-    sc = parse_scenario({"loops": n, "detailed_loops": 0, "duration_s": seconds, "seed": seed})
+def hall_speed(n: int, seconds: float, seed: int, hall: dict[str, Any] | None = None) -> dict[str, Any]:
+    sc = parse_scenario({"loops": n, "detailed_loops": 0, "duration_s": seconds, "seed": seed,
+                         "hall": hall or {}})
     t0 = time.perf_counter()
     world = TimedWorld(sc)
     build_s = time.perf_counter() - t0
@@ -54,10 +60,19 @@ def hall_speed(n: int, seconds: float, seed: int) -> dict[str, Any]:
     total_s = time.perf_counter() - t0
     steps = sc.duration_us // sc.physics_timestep_us
     return {"cells": n, "sim_s": seconds, "build_s": build_s, "physics_s": world.physics_s,
+            "physics_cpu_s": world.physics_cpu_s,
             "controllers_s": total_s - world.physics_s, "rtf_physics": seconds / world.physics_s,
             "rtf_closed_loop": seconds / total_s, "us_per_step": 1e6 * world.physics_s / steps,
-            "us_per_step_per_cell": 1e6 * world.physics_s / steps / n, "tasks": len(res.tasks),
+            "us_per_step_per_cell": 1e6 * world.physics_s / steps / n,
+            "cpu_us_per_step_per_cell": 1e6 * world.physics_cpu_s / steps / n, "tasks": len(res.tasks),
             "placed": sum(t["success"] for t in res.tasks), "nv": world.model.nv}
+
+
+def physics_bound(h: dict[str, Any], cores: int) -> float:
+    """The most simulated seconds per wall second any run of the hall's cells can reach on
+    ``cores`` cores, were every core stepping physics and nothing else running: a run's
+    physics is its hall's steps, whichever runtime or partitions carry them."""
+    return cores * h["sim_s"] / h["physics_cpu_s"]
 
 
 def render_cost(sc: Scenario, frames: int) -> float:
@@ -83,12 +98,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=8.0, help="simulated time per hall size")
     ap.add_argument("--frames", type=int, default=60, help="frames per render measurement")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--per-row", type=int, help="hall.work_cells_per_row (default: the scenario's); "
+                    "a larger hall for more cells, e.g. 16 with --pitch-m 4 holds 240")
+    ap.add_argument("--pitch-m", type=float, help="hall.work_cell_pitch_m, the same along x and y")
+    ap.add_argument("--cores", type=int, default=os.cpu_count() or 1,
+                    help="cores of the physics bound (default: this host's)")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench")
     args = ap.parse_args(argv)
 
+    hall: dict[str, Any] = {}
+    if args.per_row is not None:
+        hall["work_cells_per_row"] = args.per_row
+    if args.pitch_m is not None:
+        hall["work_cell_pitch_m"] = [args.pitch_m, args.pitch_m]
     halls = []
     for n in args.cells:
-        halls.append(hall_speed(n, args.seconds, args.seed))
+        halls.append(hall_speed(n, args.seconds, args.seed, hall))
         h = halls[-1]
         print(f"  {n:>3} cells: physics RTF {h['rtf_physics']:.2f}, {h['us_per_step']:.0f} us/step", flush=True)
     renders: list[dict[str, Any]] = []
@@ -98,11 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  render {label}: {renders[-1]['ms_per_frame']:.2f} ms per RGB-D frame", flush=True)
 
     one = next((h for h in halls if h["cells"] == 1), halls[0])
-    lines = ["| cells | DOF | physics RTF | physics us / step | us / step / cell | RTF with controllers | placed |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| cells | DOF | physics RTF | physics us / step | us / step / cell | CPU us / step / cell | "
+             f"physics bound on {args.cores} cores | RTF with controllers | placed |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for h in halls:
         lines.append(f"| {h['cells']} | {h['nv']} | {h['rtf_physics']:.2f} | {h['us_per_step']:.0f} | "
-                     f"{h['us_per_step_per_cell']:.1f} | {h['rtf_closed_loop']:.2f} | {h['placed']}/{h['tasks']} |")
+                     f"{h['us_per_step_per_cell']:.1f} | {h['cpu_us_per_step_per_cell']:.1f} | "
+                     f"{physics_bound(h, args.cores):.2f} | {h['rtf_closed_loop']:.2f} | "
+                     f"{h['placed']}/{h['tasks']} |")
     lines += ["", "| render (RGB + depth, one detailed loop) | ms / frame | x physics of 1 cell | x physics of the largest hall |",
               "|---|---:|---:|---:|"]
     big = halls[-1]
@@ -116,7 +144,11 @@ def main(argv: list[str] | None = None) -> int:
              f"1 ms, belt drive, suction, task checks), {args.seconds:g} s simulated per hall with "
              f"every arm picking (ground-truth poses). 'x physics': wall time of rendering the "
              f"loop's frames for one simulated second over the physics wall time of one simulated "
-             f"second. MuJoCo renders with EGL on this host; numbers are for one shared machine.")
+             f"second. CPU us: the stepping thread's CPU time, which other work on a shared host "
+             f"stretches less than the wall time. Physics bound: {args.cores} cores x simulated s / "
+             f"physics CPU s, the speed no run of that many abstract loops exceeds on this host "
+             f"(its controllers, radio and messages come on top). MuJoCo renders with EGL on this "
+             f"host; numbers are for one shared machine.")
     table = "\n".join(lines)
     print(table)
     print(notes)
