@@ -11,6 +11,7 @@ import itertools
 import json
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, get_args
 
@@ -18,7 +19,15 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from experiments.summary import series_name
-from scenario.schema import Scenario, ScenarioError, current_path, load_scenario, shipped_names
+from scenario.schema import (
+    NAME_MAX,
+    SEED_LIMIT,
+    Scenario,
+    ScenarioError,
+    current_path,
+    load_scenario,
+    shipped_names,
+)
 
 SCENARIOS_DIR = Path("configs") / "scenarios"
 VARIANT = "variant"  # the grid field that sweeps the spec's named variants
@@ -54,8 +63,11 @@ class Range(SpecModel):
         return self
 
     def count(self) -> float:
-        """How many values the range holds (a float: it may be astronomically many)."""
-        return max(0.0, math.floor((self.stop - self.start) / self.step + 1e-9) + 1.0)
+        """How many values the range holds (a float: it may be astronomically many, or inf)."""
+        steps = (self.stop - self.start) / self.step
+        if not math.isfinite(steps):
+            return math.inf
+        return max(0.0, math.floor(steps + 1e-9) + 1.0)
 
     def values(self) -> list[int | float]:
         n = int(self.count())
@@ -112,7 +124,8 @@ class FigureSpec(SpecModel):
 class SweepSpec(SpecModel):
     """A whole sweep: every point is base + set + one grid combination, run once per seed."""
 
-    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]*$", description="sweep name (lower case, digits, _ and -)")
+    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]*$", max_length=NAME_MAX,
+                      description=f"sweep name (lower case, digits, _ and -; at most {NAME_MAX} characters)")
     base: str = Field(description="base scenario: a name in configs/scenarios or a path to a YAML file")
     set: dict[str, Any] = Field(default_factory=dict, description="dotted field -> value, fixed for every point")
     grid: dict[str, list[Any] | Range] = Field(min_length=1, max_length=16,
@@ -142,8 +155,8 @@ class SweepSpec(SpecModel):
         else:
             if not v:
                 raise ValueError("the seed list is empty")
-            if len(set(v)) != len(v) or any(s < 0 for s in v):
-                raise ValueError("seeds must be distinct non-negative integers")
+            if len(set(v)) != len(v) or any(not 0 <= s < SEED_LIMIT for s in v):
+                raise ValueError(f"seeds must be distinct integers in 0..{SEED_LIMIT - 1}")
         return v
 
     @field_validator("variants")
@@ -165,7 +178,7 @@ class SweepSpec(SpecModel):
                 raise ValueError("grid field `variant` needs a `variants` section naming each one")
             values = self.grid[VARIANT]
             unknown = [v for v in (values.values() if isinstance(values, Range) else values)
-                       if v not in self.variants]
+                       if not isinstance(v, str) or v not in self.variants]
             if unknown:
                 raise ValueError(f"grid.variant: {', '.join(map(repr, unknown))} not in variants "
                                  f"({', '.join(self.variants)})")
@@ -195,6 +208,13 @@ class SweepSpec(SpecModel):
         if self.points() > MAX_SPEC_POINTS:
             raise ValueError(f"{self.points()} points (grid combinations x seeds); a spec holds at most "
                              f"{MAX_SPEC_POINTS}")
+        # Validation walks every combination, the excluded ones too: the grid itself is bounded.
+        combos = math.prod(v.count() if isinstance(v, Range) else len(v) for v in self.grid.values())
+        if combos > MAX_SPEC_POINTS:
+            raise ValueError(f"{combos:.0f} grid combinations (before `exclude`); a spec holds at most "
+                             f"{MAX_SPEC_POINTS}")
+        if combos and self.points() == 0:
+            raise ValueError("exclude: every grid combination is excluded, nothing would run")
         return self
 
     def points(self) -> int:
@@ -300,8 +320,13 @@ class SweepError(ValueError):
 
 
 def overrides(values: dict[str, Any]) -> list[str]:
-    """``field.path=value`` assignments (values as JSON, which YAML reads back unchanged)."""
-    return [f"{k}={json.dumps(v)}" for k, v in values.items()]
+    """``field.path=value`` assignments (values as JSON, which YAML reads back unchanged; what
+    JSON has no form for, such as a YAML date, as its text)."""
+    return [f"{k}={json.dumps(v, default=str)}" for k, v in values.items()]
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def field_exists(path: str) -> str | None:
@@ -380,10 +405,13 @@ def _current_paths(data: dict[str, Any]) -> dict[str, Any]:
 
 
 def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool = True,
-               max_points: tuple[int, str] | None = None) -> SweepSpec:
+               max_points: tuple[int, str] | None = None,
+               check: Callable[[Scenario], list[tuple[str, str]]] | None = None) -> SweepSpec:
     """Validate a spec mapping, its grid paths, and every point's scenario; or raise SweepError.
     ``max_points`` (this caller's limit on grid combinations x seeds, and the setting's name) is
-    checked before any point is: a spec too large to run costs nothing to refuse."""
+    checked before any point is: a spec too large to run costs nothing to refuse. ``check``
+    (the caller's limits on a scenario: (field, message) pairs) applies to every resolved point,
+    whatever sets the field: `set`, a grid value, a variant, a section or a scale."""
     if not isinstance(data, dict):
         raise SweepError([("(sweep)", f"expected a mapping of fields, got {type(data).__name__}")])
     try:
@@ -405,12 +433,22 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
             elif section.startswith("variants.") and (path in spec.set or path in spec.grid):
                 errors.append((f"{section}.{path}", "also in `set` or `grid`: a variant's field is "
                                                     "neither fixed nor swept"))
+    grid = spec.grid_values()
     for field, by in spec.scale.items():
         swept = by in spec.grid or (VARIANT in spec.grid and all(by in f for f in spec.variants.values()))
         if by not in spec.set and not swept:
             errors.append((f"scale.{field}", f"{by!r} is neither in `set`, the grid, nor set by every "
                                              "variant: give the factor of every point"))
-    for path, values in spec.grid_values().items():
+            continue
+        # Both sides of the product are numbers, checked before any is multiplied.
+        factors = ([spec.set[by]] if by in spec.set else grid[by] if by in grid
+                   else [f[by] for f in spec.variants.values()])
+        for where, values in ((f"grid.{field}", grid[field]), (f"scale.{field}", factors)):
+            bad = next((v for v in values if not _number(v)), None)
+            if bad is not None:
+                errors.append((where, f"{bad!r} is not a finite number: a scaled field and its "
+                                      "factor multiply"))
+    for path, values in grid.items():
         if not values:
             errors.append((f"grid.{path}", "no values: give at least one"))
         if path in spec.set:
@@ -419,25 +457,74 @@ def parse_spec(data: Any, scenarios_dir: Path = SCENARIOS_DIR, allow_paths: bool
         raise SweepError(errors)
     base = base_path(spec.base, scenarios_dir, allow_paths)
     fixed = overrides(spec.set)
-    grid = spec.grid_values()
+    verify = _Verifier(spec, base, fixed, check)
     for path, values in grid.items():  # each value alone, to name the bad one
+        seen: dict[str, int] = {}
         for i, v in enumerate(values):
             # A value that scales another axis (a layout's gNB count) comes with that axis's
             # first value: what the base scenario has there is no point of the sweep.
             alone = {**{f: grid[f][0] for f in spec.scale if f != path}, path: v}
-            try:
-                load_scenario(base, [*fixed, *overrides(spec.fields(alone))])
-            except ScenarioError as exc:
-                errors += [(f"grid.{path}[{i}]", f"{v!r}: {f}: {m}") for f, m in exc.errors]
-    if not errors:
+            resolved = verify(f"grid.{path}[{i}]", f"{v!r}: ", alone)
+            if resolved is None:
+                continue
+            if (j := seen.setdefault(resolved, i)) != i:  # one run directory per point
+                verify.errors.append((f"grid.{path}[{i}]", f"{v!r} gives the points grid.{path}[{j}] "
+                                                           f"({values[j]!r}) gives: give each value once"))
+    if not verify.errors:
         for combo in spec.combinations():
-            try:
-                load_scenario(base, [*fixed, *overrides(spec.fields(combo))])
-            except ScenarioError as exc:
-                errors += [(f"grid point {combo}", f"{f}: {m}") for f, m in exc.errors]
-    if errors:
-        raise SweepError(errors)
+            verify(f"grid point {combo}", "", combo)
+    if verify.errors:
+        raise SweepError(verify.errors)
     return spec
+
+
+# Errors a spec's validation lists before it stops looking: a spec with a bad value in a large
+# grid would otherwise load every point to say the same thing.
+MAX_ERRORS = 20
+
+
+class _Verifier:
+    """Loads the scenario of a grid combination, gathering its errors and those of the caller's
+    ``check`` (its limits); a limit on a field the grid does not sweep is named where that field is
+    set (``set.<field>`` or ``base.<field>``), once."""
+
+    def __init__(self, spec: SweepSpec, base: Path, fixed: list[str],
+                 check: Callable[[Scenario], list[tuple[str, str]]] | None) -> None:
+        self.spec, self.base, self.fixed, self.check = spec, base, fixed, check
+        self.errors: list[tuple[str, str]] = []
+        swept = [p for p in spec.grid if p != VARIANT]
+        if VARIANT in spec.grid:
+            swept += [p for fields in spec.variants.values() for p in fields]
+        self._swept = swept
+
+    def __call__(self, where: str, prefix: str, values: dict[str, Any]) -> str | None:
+        """The resolved scenario of ``values`` as JSON, or None when it has errors."""
+        if len(self.errors) >= MAX_ERRORS:
+            if self.errors[-1][0] != "(sweep)":
+                self.errors.append(("(sweep)", f"more errors not listed: the first {MAX_ERRORS} above"))
+            return None
+        try:
+            sc = load_scenario(self.base, [*self.fixed, *overrides(self.spec.fields(values))])
+        except ScenarioError as exc:
+            self.errors += [(where, f"{prefix}{f}: {m}") for f, m in exc.errors]
+            return None
+        found = [self._named(f, m, where, prefix, values.get(VARIANT))
+                 for f, m in (self.check(sc) if self.check else [])]
+        self.errors += [e for e in found if e not in self.errors]
+        return None if found else sc.model_dump_json()
+
+    def _named(self, field: str, message: str, where: str, prefix: str, variant: str | None) -> tuple[str, str]:
+        """A limit's error, named where ``field`` gets its value."""
+        if variant is not None and self._in(field, self.spec.variants[variant]):
+            return f"variants.{variant}.{field}", message
+        if any(field == p or field.startswith(p + ".") for p in self._swept):
+            return where, f"{prefix}{field}: {message}"
+        return (f"set.{field}" if self._in(field, self.spec.set) else f"base.{field}"), message
+
+    @staticmethod
+    def _in(field: str, fields: dict[str, Any]) -> bool:
+        return any(field == p or field.startswith(p + ".") for p in fields)
+
 
 
 def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpec:
@@ -446,8 +533,8 @@ def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpe
         raise SweepError([("file", f"{p} does not exist")])
     try:
         data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise SweepError([("file", f"{p} is not valid YAML: {exc}")]) from None
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise SweepError([("file", f"{p} is not valid YAML: {exc or 'nested too deep'}")]) from None
     return parse_spec(data, scenarios_dir)
 
 

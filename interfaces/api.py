@@ -24,13 +24,13 @@ from experiments.executors import Executor
 from experiments.job_store import JobKind
 from experiments.jobs import JobService, TooMuchWork
 from experiments.slots import Slots
-from experiments.spec import SweepError, SweepSpec, base_path, overrides
+from experiments.spec import SweepError
 from fabric.settings import Settings, settings
 from interfaces.guard import PUBLIC_PATHS, Guard, redact_access_log
 from interfaces.routes.runs import runs_router
 from interfaces.routes.site import site_router
 from interfaces.routes.sweeps import sweeps_router
-from scenario.schema import Scenario, ScenarioError, load_scenario
+from scenario.schema import Scenario, ScenarioError
 
 log = logging.getLogger(__name__)
 
@@ -74,36 +74,6 @@ def scenario_limit_errors(sc: Scenario, limits: Settings) -> list[tuple[str, str
     if sc.watchdog.run_timeout_s > limits.max_run_timeout_s:
         errors.append(("watchdog.run_timeout_s", f"{sc.watchdog.run_timeout_s:g} s is more than this coordinator "
                        f"allows: {limit_source('max_run_timeout_s')} = {limits.max_run_timeout_s:g} s"))
-    return errors
-
-
-def sweep_limit_errors(spec: SweepSpec, scenarios_dir: Path, limits: Settings) -> list[tuple[str, str]]:
-    """(field, message) for a point beyond the run limits (the number of points is refused
-    earlier, before any point is validated: ``parse_spec``'s ``max_points``)."""
-    errors = []
-    # Only duration_s and watchdog.run_timeout_s matter here, and each is either fixed (base and
-    # set), one grid axis, or set by variants: checking the base, each value of that axis and
-    # each variant's value covers every point.
-    base = load_scenario(base_path(spec.base, scenarios_dir, allow_paths=False), overrides(spec.set))
-    grid = spec.grid_values()
-    for path, field, limit in (("duration_s", "max_duration_s", limits.max_duration_s),
-                               ("watchdog.run_timeout_s", "max_run_timeout_s", limits.max_run_timeout_s)):
-        fixed = base.duration_s if path == "duration_s" else base.watchdog.run_timeout_s
-        candidates = ([(f"grid.{path}", v) for v in grid[path]] if path in grid
-                      else [(f"set.{path}" if path in spec.set else f"base.{path}", fixed)])
-        candidates += [(f"variants.{name}.{path}", fields[path])
-                       for name, fields in spec.variants.items() if path in fields]
-        for where, value in candidates:
-            if float(value) > limit:
-                errors.append((where, f"{float(value):g} s is more than this coordinator allows: "
-                                      f"{limit_source(field)} = {limit:g} s"))
-                break
-    named = [f"grid.{MODEL}"] if MODEL in grid else []
-    named += [f"set.{MODEL}"] if spec.set.get(MODEL) is not None else []
-    named += [f"variants.{name}.{MODEL}" for name, fields in spec.variants.items() if fields.get(MODEL) is not None]
-    if not named and base.policy.learned_model is not None:
-        named = [f"base.{MODEL}"]
-    errors += [(where, NO_FILES) for where in named]
     return errors
 
 
@@ -171,9 +141,11 @@ def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_ro
 
     app.openapi = openapi_schema  # type: ignore[method-assign]
     app.include_router(site_router(jobs, token, refused, app.openapi, count_refusal))
-    app.include_router(runs_router(jobs, scenarios_dir, lambda sc: scenario_limit_errors(sc, limits)))
-    app.include_router(sweeps_router(jobs, sweeps_dir, scenarios_dir,
-                                     lambda spec: sweep_limit_errors(spec, scenarios_dir, limits),
+    def within_limits(sc: Scenario) -> list[tuple[str, str]]:
+        return scenario_limit_errors(sc, limits)
+
+    app.include_router(runs_router(jobs, scenarios_dir, within_limits))
+    app.include_router(sweeps_router(jobs, sweeps_dir, scenarios_dir, within_limits,
                                      (limits.max_sweep_points, limit_source("max_sweep_points")),
                                      on_change=lambda: count_sweeps(jobs)))
 

@@ -20,10 +20,21 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from scenario.lattice import GNB_COUNTS, lattice_points_m, lattice_subset
 from scenario.nr import NrConfig
 
+# Integers at or beyond this travel in no message (msgpack carries 64 bits) and are no longer
+# exact as floats: no field means anything there.
+INT_LIMIT = 2**53
+
 
 class Strict(BaseModel):
     # No field takes an infinite or NaN number: a limit, a rate or a timeout must be a finite one.
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _bounded_ints(cls, v: Any) -> Any:
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= INT_LIMIT:
+            raise ValueError(f"{v:.3g} is too large: integers here are below 2**53")
+        return v
 
 
 class JobModel(Strict):
@@ -31,6 +42,10 @@ class JobModel(Strict):
 
     mean_us: int = Field(gt=0, description="mean emulated duration, microseconds")
     sd_us: int = Field(default=0, ge=0, description="standard deviation, microseconds")
+
+
+# The compute jobs of a run (docs/architecture.md sec. 5), the kinds a node's model_us may time.
+JOB_KINDS = ("compress", "pose", "policy", "control")
 
 
 class NodeProfile(Strict):
@@ -66,6 +81,15 @@ class Nodes(Strict):
                               description="Edge node profile")
     robot: NodeProfile = Field(default_factory=lambda: NodeProfile(cpus=0.25, mem_mb=512),
                                description="robot node profile")
+
+    @model_validator(mode="after")
+    def _job_kinds(self) -> Nodes:
+        for node in ("camera", "edge", "robot"):
+            unknown = [k for k in getattr(self, node).model_us if k not in JOB_KINDS]
+            if unknown:
+                raise ValueError(f"nodes.{node}.model_us: {_given(unknown[0])} is not a job kind; "
+                                 f"job kinds: {', '.join(JOB_KINDS)}")
+        return self
 
 
 # gNB height of each InF sub-scenario, TR 38.901 Table 7.8-7 (netsim/nr/layout.py holds the whole
@@ -545,11 +569,18 @@ class WatchdogConfig(Strict):
     run_timeout_s: float = Field(default=3600.0, gt=0, description="wall-clock limit of the run")
 
 
+# A name becomes part of directory names (run ids); a seed's low 32 bits seed the streams
+# (fabric/seeding.py), so larger seeds would repeat smaller ones.
+NAME_MAX = 64
+SEED_LIMIT = 2**32
+
+
 class Scenario(Strict):
     """A complete run description."""
 
-    name: str = Field(default="scenario", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="scenario name")
-    seed: int = Field(default=1, ge=0, description="root seed of every random stream")
+    name: str = Field(default="scenario", pattern=r"^[a-z0-9][a-z0-9_-]*$", max_length=NAME_MAX,
+                      description=f"scenario name (at most {NAME_MAX} characters)")
+    seed: int = Field(default=1, ge=0, lt=SEED_LIMIT, description="root seed of every random stream")
     runtime: Literal["process", "docker", "ray"] = Field(
         default="process", description="where federates run: local processes, containers, or Ray actors "
         "on a Ray cluster (docs/architecture.md sec. 8)")
@@ -667,7 +698,12 @@ class Scenario(Strict):
 
         if (bad := outside(self.loops)) is None:
             return
-        fits = next((n for n in range(self.loops - 1, 0, -1) if outside(n) is None), 0)
+        # The work cells fill a fixed order: fewer fit if more do, so the most that fit are
+        # bisected (a search down from loops costs loops^2, seconds at a thousand).
+        fits, too_many = 0, self.loops
+        while too_many - fits > 1:
+            mid = (fits + too_many) // 2
+            fits, too_many = (mid, too_many) if outside(mid) is None else (fits, mid)
         ue, pos = bad
         raise ValueError(
             f"loops = {self.loops} work cells do not fit in the hall ({self.hall.length_m:g} x "
@@ -792,6 +828,8 @@ def parse_value(raw: str, field: str) -> Any:
     except yaml.YAMLError as exc:
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ScenarioError([(field, f"not a YAML value ({problem}): {raw[:40]!r}")]) from None
+    except RecursionError:  # brackets nested hundreds deep
+        raise ScenarioError([(field, f"not a YAML value (nested too deep): {raw[:40]!r}")]) from None
 
 
 def _given(value: Any) -> str:
@@ -887,8 +925,8 @@ def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scena
         raise ScenarioError([("file", f"{p} does not exist")])
     try:
         data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ScenarioError([("file", f"{p} is not valid YAML: {exc}")]) from None
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise ScenarioError([("file", f"{p} is not valid YAML: {exc or 'nested too deep'}")]) from None
     return parse_scenario(data, overrides)
 
 

@@ -21,7 +21,7 @@ from experiments.job_store import JobKind
 from experiments.jobs import JobService
 from experiments.spec import SweepError, SweepSpec, parse_spec
 from interfaces.pages import sweep_page
-from scenario.schema import shipped_names
+from scenario.schema import Scenario, shipped_names
 
 # What a client may fetch of a sweep's directory: the derived files, by exact name.
 SWEEP_FILES = {f"{stem}.{ext}" for stem in ("fig4_success", "fig5_traffic", "fig6_latency_cdf", "fig7_gain",
@@ -85,7 +85,8 @@ class SweepCancelling(BaseModel):
 
 
 def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path,
-                 max_points: tuple[int, str] | None = None) -> SweepSpec:
+                 max_points: tuple[int, str] | None = None,
+                 check: Callable[[Scenario], list[tuple[str, str]]] | None = None) -> SweepSpec:
     if isinstance(req.spec, str):
         known = shipped_names(sweeps_dir)
         if req.spec not in known:  # checked against the list: a name never becomes a path
@@ -93,7 +94,7 @@ def resolve_spec(req: SweepRequest, sweeps_dir: Path, scenarios_dir: Path,
         data = yaml.safe_load((sweeps_dir / f"{req.spec}.yaml").read_text())
     else:
         data = req.spec
-    return parse_spec(data, scenarios_dir, allow_paths=False, max_points=max_points)
+    return parse_spec(data, scenarios_dir, allow_paths=False, max_points=max_points, check=check)
 
 
 def wants_html(request: Request) -> bool:
@@ -105,9 +106,10 @@ def wants_html(request: Request) -> bool:
 
 
 def sweeps_router(jobs: JobService, sweeps_dir: Path, scenarios_dir: Path,
-                  check: Callable[[SweepSpec], list[tuple[str, str]]], max_points: tuple[int, str],
+                  check: Callable[[Scenario], list[tuple[str, str]]], max_points: tuple[int, str],
                   on_change: Callable[[], None] = lambda: None) -> APIRouter:
-    """``check(spec)``: (field, message) of each limit a point passes (422); ``max_points``
+    """``check(scenario)``: (field, message) of each limit a point passes (422), applied to every
+    resolved point; ``max_points``
     (limit, setting) refuses a spec with more points before any point is validated;
     ``on_change()`` when sweeps are listed (the metrics; admission counts itself)."""
     router = APIRouter(tags=["sweeps"])
@@ -124,10 +126,7 @@ def sweeps_router(jobs: JobService, sweeps_dir: Path, scenarios_dir: Path,
 
     @router.post("/sweeps", status_code=201)
     def start_sweep(req: SweepRequest) -> SweepAccepted:
-        spec = resolve_spec(req, sweeps_dir, scenarios_dir, max_points)
-        errors = check(spec)
-        if errors:
-            raise SweepError(errors)
+        spec = resolve_spec(req, sweeps_dir, scenarios_dir, max_points, check)
         sweep_id, points = jobs.submit_sweep(spec)
         return SweepAccepted(sweep_id=sweep_id, state=RunState.PENDING, points=points)
 

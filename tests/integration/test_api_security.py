@@ -268,7 +268,7 @@ def test_sweep_limits_are_answered_with_422_naming_the_limit(tmp_path: Path) -> 
                                              "grid": {"loops": [2], "duration_s": [10, 40]}}}, headers=AUTH)
         assert r.status_code == 422
         [err] = r.json()["detail"]
-        assert err["field"] == "grid.duration_s" and "40 s" in err["message"] and "max_duration_s" in err["message"]
+        assert err["field"] == "grid.duration_s[1]" and "40 s" in err["message"] and "max_duration_s" in err["message"]
         r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"duration_s": 31, "detailed_loops": 0}}},
                    headers=AUTH)
         assert r.status_code == 422 and r.json()["detail"][0]["field"] == "set.duration_s"
@@ -279,6 +279,15 @@ def test_sweep_limits_are_answered_with_422_naming_the_limit(tmp_path: Path) -> 
         assert r.status_code == 422
         [err] = r.json()["detail"]
         assert err["field"] == "variants.long.duration_s" and "45 s" in err["message"]
+        # Every resolved point is held to the limits, however its value is set: a whole section
+        # as an axis value, or a scale that multiplies an allowed value past the limit.
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "grid": {
+            "loops": [2], "watchdog": [{"run_timeout_s": 1e6}]}}}, headers=AUTH)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "grid.watchdog[0]", r.text
+        r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1, "set": {"detailed_loops": 0},
+                                             "grid": {"duration_s": [20], "loops": [2, 3]},
+                                             "scale": {"duration_s": "loops"}}}, headers=AUTH)
+        assert r.status_code == 422 and "40 s" in r.json()["detail"][0]["message"], r.text
         r = c.post("/sweeps", json={"spec": {**spec, "seeds": 1}}, headers=AUTH)
         assert r.status_code == 201, r.text
     assert held.started == []
@@ -523,7 +532,11 @@ def test_a_request_names_no_file_of_the_coordinators_host(tmp_path: Path) -> Non
         for spec, field in (({**base, "set": {**base["set"], "policy.learned_model": "/etc/passwd"}},
                              "set.policy.learned_model"),
                             ({**base, "grid": {"loops": [2], "policy.learned_model": ["/etc/passwd"]}},
-                             "grid.policy.learned_model"),
+                             "grid.policy.learned_model[0]"),
+                            # a whole section as an axis value
+                            ({**base, "grid": {"loops": [2], "policy": [{"name": "learned",
+                                                                         "learned_model": "/etc/passwd"}]}},
+                             "grid.policy[0]"),
                             ({**base, "variants": {"v": {"policy.learned_model": "/etc/shadow"}}},
                              "variants.v.policy.learned_model")):
             r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)

@@ -61,6 +61,29 @@ def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
         parse_scenario({"loops": 72, "detailed_loops": 0})
     wide = {"length_m": 120, "width_m": 100, "gnb_position_m": [60, 50, 1.5], "work_cells_per_row": 12}
     assert parse_scenario({"loops": 128, "detailed_loops": 0, "hall": wide}).loops == 128
+    # Far past the hall, how many fit is still found (bisected, not searched down from loops).
+    with pytest.raises(ScenarioError, match=r"loops = 1024 work cells .* at most 64 fit"):
+        parse_scenario({"loops": 1024, "detailed_loops": 0})
+
+
+@pytest.mark.parametrize(("data", "field", "says"), [
+    ({"seed": 2**32}, "seed", "less than 4294967296"),  # the streams take a seed's low 32 bits
+    ({"name": "a" * 65}, "name", "at most 64 characters"),
+    ({"camera": {"readout_latency_us": 10**25}}, "camera.readout_latency_us", "below 2**53"),
+    ({"nodes": {"edge": {"cpus": 1, "model_us": {"compres": {"mean_us": 10}}}}}, "nodes",
+     "'compres' is not a job kind; job kinds: compress, pose, policy, control"),
+])
+def test_values_no_run_could_carry_are_refused_naming_the_field(data: dict, field: str, says: str) -> None:
+    with pytest.raises(ScenarioError) as exc:
+        parse_scenario(data)
+    [(got, msg)] = exc.value.errors
+    assert got == field and says in msg
+
+
+def test_an_override_nested_too_deep_is_refused_naming_it() -> None:
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(SCENARIOS[0], ["loops=" + "[" * 2000 + "]" * 2000])
+    assert exc.value.errors[0][0] == "loops" and "nested too deep" in exc.value.errors[0][1]
 
 
 def test_work_cells_around_the_gnbs_need_several_gnbs_and_may_not_overlap() -> None:

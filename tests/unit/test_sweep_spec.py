@@ -417,3 +417,47 @@ def test_a_spec_written_with_old_field_names_loads_under_the_new_ones() -> None:
         spec = parse_spec(data)
     assert set(spec.grid) == {"variant", "loops", "work_cell.belt_speed_m_s"}
     assert spec.set == {"work_cell.object_period_s": 3.0} and spec.variants == {"v": {"hall.work_cells_per_row": 4}}
+
+
+def test_values_that_would_break_the_engine_are_refused_naming_their_field() -> None:
+    # A grid value that gives the points another one gives would share its run directory.
+    [(field, msg)] = errors_of(spec(grid={"loops": [2, 2.0]}))
+    assert field == "grid.loops[1]" and "give each value once" in msg
+    # A variant named by a list, a range too wide to count, a long name, seeds past 32 bits.
+    assert "not in variants" in errors_of(spec(variants={"a": {"loops": 2}}, grid={"variant": [["a"]]}))[0][1]
+    assert "at most 1000" in errors_of(spec(grid={"loops": {"start": 0, "stop": 1e300, "step": 1e-300}}))[0][1]
+    assert errors_of(spec(name="a" * 65))[0][0] == "name"
+    assert "0..4294967295" in errors_of(spec(seeds=[1, 2**32 + 1]))[0][1]
+    # Both sides of a scale are numbers before anything is multiplied.
+    errs = errors_of(spec(grid={"duration_s": [1.5], "loops": [2]}, scale={"duration_s": "hall.gnb_position_m"},
+                          set={"hall.gnb_position_m": [60, 30, 1.5]}))
+    assert errs[0][0] == "scale.duration_s" and "not a finite number" in errs[0][1]
+
+
+def test_a_grid_excluded_whole_or_too_large_before_exclusion_is_refused() -> None:
+    grid = {"policy.name": ["none", "heuristic"], "loops": [2, 4]}
+    [(_, msg)] = errors_of(spec(grid=grid, exclude=[{"policy.name": "none"}, {"policy.name": "heuristic"}]))
+    assert "every grid combination is excluded" in msg
+    big = {"loops": {"start": 1, "stop": 1000, "step": 1}, "seed": {"start": 1, "stop": 1000, "step": 1},
+           "policy.name": ["none", "heuristic"]}
+    errs = errors_of(spec(grid=big, exclude=[{"policy.name": "none"}]))
+    assert "points" in errs[0][1] and "at most 100000" in errs[0][1]
+
+
+def test_a_caller_check_holds_every_resolved_point_and_errors_stop_at_a_cap() -> None:
+    def short(sc: Any) -> list[tuple[str, str]]:
+        return [("duration_s", f"{sc.duration_s:g} s is too long")] if sc.duration_s > 30 else []
+
+    def refused(data: dict[str, Any]) -> list[tuple[str, str]]:
+        with pytest.raises(SweepError) as exc:
+            parse_spec(data, SCENARIOS, check=short)
+        return exc.value.errors
+
+    assert refused(spec(set={"duration_s": 40})) == [("set.duration_s", "40 s is too long")]
+    assert refused(spec(grid={"loops": [2], "duration_s": [10, 40]}))[0][0] == "grid.duration_s[1]"
+    assert refused(spec(variants={"v": {"duration_s": 45}}))[0][0] == "variants.v.duration_s"
+    errs = refused(spec(grid={"duration_s": [20], "loops": [2]}, scale={"duration_s": "loops"}))
+    assert errs and all("40 s" in msg for _, msg in errs)
+    many = refused(spec(grid={"loops": {"start": 1, "stop": 200, "step": 1}, "duration_s": [5]},
+                        set={"watchdog.run_timeout_s": 10.0, "detailed_loops": 0, "hall.work_cells_per_row": 1}))
+    assert 1 < len(many) <= 21 and many[-1][0] == "(sweep)"
