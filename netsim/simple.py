@@ -40,7 +40,9 @@ class SimpleCell(RadioCell):
         self.qos: dict[str, FlowQos] = {}
         # heap of (priority, enqueue_us, packet_id, packet) per direction
         self.queues: dict[str, list[tuple[int, int, int, Packet]]] = {"ul": [], "dl": []}
-        self.head_left: dict[str, int | None] = {"ul": None, "dl": None}  # bytes left of the head
+        # Bytes left of each packet begun and not finished, by packet id: a packet that arrives
+        # with a higher priority goes first, and the one it overtook keeps its count.
+        self.left: dict[int, int] = {}
         self.buffered: dict[tuple[str, str], int] = defaultdict(int)  # (ue, dir) -> bytes
         self.served_bytes = {"ul": 0, "dl": 0}
         self.busy_slots = {"ul": 0, "dl": 0}
@@ -80,20 +82,19 @@ class SimpleCell(RadioCell):
                 self.busy_slots[direction] += 1
             while q and budget > 0:
                 packet = q[0][3]
-                if self.head_left[direction] is None:
+                left = self.left.get(packet.packet_id)
+                if left is None:
                     pdb = self.qos.get(packet.flow, FlowQos()).delay_budget_us
                     if pdb is not None and slot_start_us - packet.enqueue_us > pdb:
                         self._pop(direction)
                         out.append(PacketOutcome(packet, None, LOSS_DELAY_BUDGET))
                         continue
-                    self.head_left[direction] = packet.size_bytes
-                left = self.head_left[direction]
-                assert left is not None
+                    left = packet.size_bytes
                 take = min(left, budget)
                 budget -= take
                 self.served_bytes[direction] += take
                 if take < left:
-                    self.head_left[direction] = left - take
+                    self.left[packet.packet_id] = left - take
                     break
                 self._pop(direction)
                 if self.loss_probability and self.rng.random() < self.loss_probability:
@@ -105,7 +106,7 @@ class SimpleCell(RadioCell):
     def _pop(self, direction: str) -> None:
         packet = heapq.heappop(self.queues[direction])[3]
         self.buffered[(packet.ue, direction)] -= packet.size_bytes
-        self.head_left[direction] = None
+        self.left.pop(packet.packet_id, None)
 
     def stats(self) -> dict[str, Any]:
         """Slots run, bytes served and busy slots per direction."""

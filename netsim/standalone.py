@@ -156,6 +156,9 @@ def _drive_cameras(cell: RadioCell, ue_ids: list[str], cfg: NrConfig, rate_mbps:
     n_slots = duration_us // slot_us
     end_us = n_slots * slot_us
     warmup_us = int(round((min(0.5, 0.1 * duration_s) if warmup_s is None else warmup_s) * 1e6))
+    if end_us - warmup_us < slot_us:  # the rates are over the slots after the warm-up
+        raise ValueError(f"duration_s = {duration_s:g} s leaves no whole slot ({slot_us} us) after the "
+                         f"warm-up ({warmup_us / 1e6:g} s): give at least the warm-up plus one slot")
     frame_bytes = max(1, int(round(rate_mbps * 1e6 / 8 / frame_rate)))
     sizes = [packet_bytes] * (frame_bytes // packet_bytes)
     if frame_bytes % packet_bytes:
@@ -338,9 +341,12 @@ def main(argv: list[str] | None = None) -> int:
     config = _parse_overrides(parser, args.overrides)
     budget = None if args.delay_budget_ms is None else int(round(args.delay_budget_ms * 1000))
     with simulation_heap():
-        result = run_uplink_cameras(
-            args.ues, args.rate_mbps, args.duration_s, frame_rate=args.frame_rate, seed=args.seed,
-            config=config, warmup_s=args.warmup_s, delay_budget_us=budget)
+        try:
+            result = run_uplink_cameras(
+                args.ues, args.rate_mbps, args.duration_s, frame_rate=args.frame_rate, seed=args.seed,
+                config=config, warmup_s=args.warmup_s, delay_budget_us=budget)
+        except ValueError as exc:
+            parser.error(f"--duration-s: {exc}")
     lat = result["ip_latency_ms"]
     print(f"{result['ues']} cameras x {result['rate_mbps']:g} Mbps, "
           f"{result['duration_s']:g} s simulated, seed {result['seed']}, "

@@ -15,6 +15,9 @@ from netsim.nr.phy import PhyAbstraction
 from scenario.nr import NrConfig
 
 POWER_LIMIT_MARGIN_DB = 3.0  # SNR per PRB kept above the MCS-0 threshold by this much
+# EESMs cached a cell: a slot looks up a few hundred, and with fading the cache is emptied at
+# every channel update; without fading it would grow by a few a slot for as long as a run lasts.
+EESM_CACHE_MAX = 16_384
 
 
 class Csi:
@@ -56,6 +59,7 @@ class Csi:
         # EESM of (ue, first PRB, n PRB, MCS, link) under the current channel: allocations
         # repeat from slot to slot (a backlogged UE gets the same PRBs), the gains change only
         # every channel_update_period_slots.
+        # Without fading the gains never change and nothing clears it: bounded by EESM_CACHE_MAX.
         self.eesm_cache: dict[tuple[int, int, int, int, bool], float] = {}
 
     def channel_changed(self) -> None:
@@ -83,8 +87,14 @@ class Csi:
             return cached
         value = self.eesm_scaled(u, p0, n, mcs,
                                  self.ul_snr[u] * self.n_prb / n if ul else self.dl_snr[u])
-        self.eesm_cache[key] = value
+        self._keep(key, value)
         return value
+
+    def _keep(self, key: tuple[int, int, int, int, bool], value: float) -> None:
+        """Cache an EESM; a full cache starts again."""
+        if len(self.eesm_cache) >= EESM_CACHE_MAX:
+            self.eesm_cache.clear()
+        self.eesm_cache[key] = value
 
     def eesm_scaled(self, u: int, p0: int, n: int, mcs: int, scale: float) -> float:
         """Effective SINR (linear) of UE index ``u`` on PRBs [``p0``, ``p0`` + ``n``) with the
@@ -266,7 +276,7 @@ class InterferenceCsi(Csi):
         else:
             scale = self._dl_over_ipn[u]
         value = self.eesm_scaled(u, p0, n, mcs, scale)
-        self.eesm_cache[key] = value
+        self._keep(key, value)
         return value
 
     def measured(self, u: int, ul: bool, inr: float) -> None:

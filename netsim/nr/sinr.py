@@ -51,7 +51,7 @@ def slot_sinr(p0: np.ndarray, n: np.ndarray, scale: np.ndarray, beta: np.ndarray
     fading.refresh(np.concatenate((serving, pair_links)), update)
     gain = fading.gain
     # Rows of the gains by link (take), then the segments' subbands unless they are every one.
-    every_subband = sb.size == gain.shape[1] and int(sb[-1]) == sb.size - 1
+    every_subband = sb.size == gain.shape[1] and int(sb[0]) == 0 and int(sb[-1]) == sb.size - 1
     # In double precision before the products (exact), which then need no casting on the way.
     rows = gain.take(serving, axis=0).astype(float)
     sinr: np.ndarray = scale[:, None] * (rows if every_subband else rows[:, sb])

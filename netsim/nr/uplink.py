@@ -137,11 +137,17 @@ class Uplink:
 
     def _cg_occasions(self, slot: int) -> list[int]:
         """UEs with a configured-grant occasion in ``slot`` (staggered over the period), as
-        many as fit in the carrier."""
+        many as fit in the carrier; where more share the slot than fit, they take turns from one
+        period to the next (the same first ones every period would starve the rest, which send
+        no scheduling request)."""
         cfg = self.config
         period = cfg.cg_period_slots
         fit = self.n_prb // cfg.cg_prb
-        return [u for u in range(self.n_ue) if (slot + u) % period == 0][:fit]
+        due = [u for u in range(self.n_ue) if (slot + u) % period == 0]
+        if len(due) <= fit:
+            return due
+        k = (slot // period) * fit % len(due)
+        return (due[k:] + due[:k])[:fit]
 
     def _configured_grants(self, s: int) -> list[Grant]:
         """The configured-grant PUSCHs of slot ``s``, for UEs with data to send (an unused

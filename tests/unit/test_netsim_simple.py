@@ -79,3 +79,22 @@ def test_outcomes_become_the_packets_tables_columns_and_counts() -> None:
     assert fates[("ul", "delivered")] == 2 and bits == {"ul": 2 * 8 * 1500, "dl": 0}
     assert latencies == {"ul": {1000: 1, 2000: 1}, "dl": {}}
     assert fates[("ul", LOSS_BUFFER)] == 1
+
+
+def test_a_packet_that_overtakes_a_begun_one_is_sent_whole_and_the_begun_one_finishes() -> None:
+    c = cell(ul_rate_mbps=1.0)  # 125 bytes a slot
+    c.set_flow_qos("urgent", FlowQos(priority=1))
+    c.enqueue(Packet(1, "bulk", "ue", "ul", 130, 0))
+    assert c.run_slot(0) == []  # 5 bytes of the bulk packet left
+    c.enqueue(Packet(2, "urgent", "ue", "ul", 250, 1000))
+    sent = {o.packet.packet_id: o.deliver_us for o in run_from(c, 1, 4)}
+    # The urgent packet takes its own two slots (not the 5 bytes the bulk one had left), then
+    # the bulk packet its last 5 bytes.
+    assert sent == {2: 3000, 1: 4000}
+
+
+def run_from(c: SimpleCell, first: int, slots: int) -> list:
+    out = []
+    for s in range(first, first + slots):
+        out += c.run_slot(s * 1000)
+    return out

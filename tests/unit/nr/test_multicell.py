@@ -15,6 +15,7 @@ from netsim.nr import interference as itf
 from netsim.nr.layout import InfLayout
 from netsim.nr.link_fading import LinkFading
 from netsim.nr.multicell import MultiCell
+from netsim.nr.phy import eesm
 from netsim.nr.radio_cell import NrCell
 from netsim.nr.sinr import slot_sinr
 from netsim.radio_cell import Packet, PacketOutcome
@@ -50,6 +51,28 @@ def test_interference_counts_only_the_prbs_both_transmissions_use() -> None:
     # Zero coupling (the same cell, another frequency group): none either.
     eff, inr = _sinr([0, 0], [100, 100], [[0.0, 0.0], [0.0, 0.0]])
     assert eff.tolist() == [100.0, 100.0]
+
+
+class _SubbandGains:
+    """What ``slot_sinr`` reads of the fading: a gain per link and subband, brought up to date."""
+
+    def __init__(self, gain: np.ndarray) -> None:
+        self.gain = gain
+
+    def refresh(self, links: np.ndarray, update: int) -> None:
+        pass
+
+
+def test_each_prb_takes_its_own_subbands_gain_when_the_first_subbands_are_unused() -> None:
+    # 156 PRBs in subbands of 20 (8 subbands), two transmissions on PRBs 20-89 and 90-155: the
+    # segments are as many as the subbands, but start at the second one.
+    gain = np.array([[10.0 ** (k - 4) for k in range(8)], [10.0 ** (4 - k) for k in range(8)]], np.float32)
+    p0, n = np.array([20, 90]), np.array([70, 66])
+    eff, _ = slot_sinr(p0, n, np.ones(2), np.full(2, 1.5), np.arange(2), np.zeros((2, 2)),
+                       np.zeros((2, 2), dtype=np.int64), _SubbandGains(gain), 0, 20)  # type: ignore[arg-type]
+    for i in range(2):
+        prbs = np.arange(p0[i], p0[i] + n[i])
+        assert eff[i] == pytest.approx(eesm(gain[i, prbs // 20].astype(float), 1.5), rel=1e-12)
 
 
 def _flat(**kw: object) -> NrConfig:

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
 import pytest
 
+from netsim.nr.csi import EESM_CACHE_MAX
 from netsim.nr.harq import HarqEntity, TransportBlock
 from netsim.nr.radio_cell import NrCell
 from netsim.nr.scheduler import MaxRate, ProportionalFair, RoundRobin, make_scheduler
 from netsim.radio_cell import LOSS_BUFFER, LOSS_CHANNEL, LOSS_DELAY_BUDGET, FlowQos, Packet
+from netsim.standalone import camera_layout
 from scenario.nr import NrConfig
 
 GNB = (60.0, 30.0, 1.5)
@@ -85,6 +88,17 @@ def test_configured_grant_skips_the_sr(flat_config: NrConfig) -> None:
     d.send("ue0", 1500, count=20)
     d.run(8)
     assert len(d.outcomes) == 21 and max(o.deliver_us for o in d.outcomes) <= 8000
+
+
+def test_configured_grant_occasions_take_turns_when_more_ues_share_them_than_fit(
+        flat_config: NrConfig) -> None:
+    # 468 PRBs hold 11 occasions of 40 PRBs a slot; 30 UEs share every slot's occasions (period 1).
+    cfg = flat_config.model_copy(update={"ul_access": "configured_grant", "cg_prb": 40})
+    d = Driver(NrCell(cfg, GNB, ring(30), seed=1))
+    for u in range(30):
+        d.send(f"ue{u}", 100)
+    d.run(6)
+    assert sorted(o.packet.ue for o in d.outcomes) == sorted(f"ue{u}" for u in range(30))
 
 
 def test_downlink_is_delivered_at_the_end_of_its_slot(flat_config: NrConfig) -> None:
@@ -367,3 +381,18 @@ def test_pf_ranks_a_ue_starved_for_thousands_of_slots_first() -> None:
     # Urgency still orders two starved UEs, as it orders UEs never served.
     pf.served(2, 10_000, 0)
     assert pf.order([0, 2], [10, 10, 10], [100.0, 100.0, 100.0], starved, [1.0, 1.0, 4.0]) == [2, 0]
+
+
+def test_the_eesm_cache_stays_bounded_when_no_fading_ever_empties_it() -> None:
+    cfg = NrConfig(fading="none")
+    gnb, ues = camera_layout(40, cfg)
+    cell, ids, rng = NrCell(cfg, gnb, ues, seed=0), list(ues), np.random.default_rng(0)
+    largest, pid = 0, 0
+    for s in range(8000):  # random sizes: new allocations, so new entries, every slot
+        for u in rng.choice(len(ids), 6, replace=False):
+            pid += 2
+            cell.enqueue(Packet(pid, "f", ids[u], "ul", int(rng.integers(40, 9000)), s * 1000))
+            cell.enqueue(Packet(pid + 1, "g", ids[u], "dl", int(rng.integers(40, 3000)), s * 1000))
+        cell.run_slot(s * 1000)
+        largest = max(largest, len(cell._csi.eesm_cache))
+    assert EESM_CACHE_MAX // 2 < largest <= EESM_CACHE_MAX + len(ids)

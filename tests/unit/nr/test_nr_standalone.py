@@ -43,6 +43,9 @@ def test_json_output_has_the_kpis(capsys: pytest.CaptureFixture[str]) -> None:
      "--frame-rate"),
     (["--ues", "2", "--rate-mbps", "8", "--duration-s", "1", "--set", "n_prb=9999"], "n_prb"),
     (["--ues", "2", "--rate-mbps", "8", "--duration-s", "1", "--set", "nprb=100"], "nprb"),
+    # no whole slot after the warm-up to measure a rate over (a division by zero before)
+    (["--ues", "1", "--rate-mbps", "8", "--duration-s", "0.5004", "--warmup-s", "0.5"], "--duration-s"),
+    (["--ues", "1", "--rate-mbps", "8", "--duration-s", "0.000004"], "--duration-s"),
 ])
 def test_bad_arguments_exit_2_naming_the_field(argv: list[str], named: str,
                                                capsys: pytest.CaptureFixture[str]) -> None:
