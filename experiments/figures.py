@@ -124,7 +124,7 @@ def gain_figure(grouped: dict[str, Any], label: str) -> Figure:
     groups = list(grouped["groups"])
     first = grouped["groups"][groups[0]] if groups else {"series": {}, "reference": None}
     ref = first["reference"]
-    names = [n for n in first["series"] if n != ref]
+    names = [n for n in first["series"] if n != ref and first.get("references", {}).get(n) != n]
     fig, ax = plt.subplots(figsize=(max(7.0, 0.6 * len(groups) * max(1, len(names)) / 2), 4.2), layout="constrained")
     width = 0.8 / max(1, len(names))
     for i, name in enumerate(names):

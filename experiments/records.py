@@ -51,8 +51,14 @@ class SweepDir:
     def create(self, meta: dict[str, Any], spec_yaml: str) -> None:
         for d in (self.path, self.runs, self.configs, self.progress):
             d.mkdir(parents=True, exist_ok=True)
-        (self.path / "sweep.yaml").write_text(spec_yaml)
+        self.write_spec(spec_yaml)
         self.write_meta(meta)
+
+    def write_spec(self, spec_yaml: str) -> None:
+        """The spec the sweep runs (and its report reads), replaced whole."""
+        tmp = self.path / "sweep.yaml.tmp"
+        tmp.write_text(spec_yaml)
+        os.replace(tmp, self.path / "sweep.yaml")
 
     def meta(self) -> dict[str, Any]:
         p = self.path / "sweep.json"

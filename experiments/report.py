@@ -89,10 +89,11 @@ def rebuild(sweep_dir: Path) -> dict[str, Any]:
     sd.write_loops_table()
     summary = summarise(points, spec.grid_values())
     write_rows(sweep_dir / "summary.parquet", summary)
-    cap = capacity(summary, x, series_fields, spec.capacity.thresholds, spec.capacity.reference)
+    loads = spec.grid_values()[x]
+    cap = capacity(summary, x, series_fields, spec.capacity.thresholds, spec.capacity.reference, loads)
     if spec.capacity.group:
         cap["grouped"] = grouped_capacity(summary, x, series_fields, spec.capacity.thresholds,
-                                          spec.capacity.reference, spec.capacity.group)
+                                          spec.capacity.reference, spec.capacity.group, loads)
     cell = _radio_cell_capacity(sd, records)
     cap["radio_cell_ul_capacity_mbps"] = cell["ul_capacity_mbps"] if cell else None
     write_json(sweep_dir / "capacity.json", cap)
@@ -195,7 +196,9 @@ def render_report(spec: SweepSpec, meta: dict[str, Any], summary: list[dict[str,
     lines += ["## Capacity", "",
               f"The largest `{x}` whose task success rate (pooled over seeds), and that of every smaller "
               f"`{x}` of the grid, reaches the threshold; `>=` where no load swept failed (the "
-              f"capacity lies at or beyond the grid's end).", ""]
+              f"capacity lies at or beyond the grid's end) or a load has no result yet. A gain is "
+              f"over the reference series that agrees with the series on every other field; `<=` "
+              f"where only the reference's capacity is a bound.", ""]
     lines += ["| series | " + " | ".join(labels) + " | gain over " + f"`{cap['reference']}` |",
               "|---" * (len(labels) + 2) + "|"]
     for name, entry in cap["series"].items():

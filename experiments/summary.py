@@ -89,37 +89,64 @@ def series_name(row: dict[str, Any], series_fields: list[str]) -> str:
 
 
 def capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str],
-             thresholds: list[float], reference: str | None = None) -> dict[str, Any]:
-    """Capacity per series and threshold, and each series' gain over the reference series."""
+             thresholds: list[float], reference: str | None = None,
+             loads: list[Any] | None = None) -> dict[str, Any]:
+    """Capacity per series and threshold, and each series' gain over its reference series.
+
+    ``loads``: the grid's values of ``x``; a series with no result at one of them knows nothing
+    past it. ``reference`` names a series, or part of one: each series is then compared with the
+    series that agrees with it on every other field (``references``); a series with none has
+    no gain. Without a reference, the first series is every series' reference."""
     by_series: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for row in summary:
         by_series[series_name(row, series_fields)].append(row)
     out: dict[str, Any] = {"x": x, "thresholds": thresholds, "series": {}}
     for name, rows in by_series.items():
-        rows = sorted(rows, key=lambda r: r[x])
-        entry: dict[str, Any] = {}
-        for th in thresholds:
-            entry[threshold_label(th)] = capacity_of_curve([(r[x], r["success_rate"]) for r in rows], th)
-        out["series"][name] = entry
+        curve = {r[x]: r["success_rate"] for r in rows}
+        for load in loads or []:
+            curve.setdefault(load, None)
+        points = sorted(curve.items())
+        out["series"][name] = {threshold_label(th): capacity_of_curve(points, th) for th in thresholds}
     names = list(out["series"])
-    ref = reference if reference in out["series"] else (names[0] if names else None)
-    out["reference"] = ref
+    refs = references(names, reference)
+    out["reference"] = reference if reference is not None else (names[0] if names else None)
+    out["references"] = refs
     gains: dict[str, Any] = {}
     for name in names:
+        ref = refs.get(name)
         if ref is None:
-            break
+            continue
         g = {}
         for th in thresholds:
-            mine, theirs = out["series"][name][threshold_label(th)]["capacity"], out["series"][ref][threshold_label(th)]["capacity"]
-            g[threshold_label(th)] = {"ratio": mine / theirs if mine is not None and theirs else None,
-                             "difference": mine - theirs if mine is not None and theirs is not None else None}
+            label = threshold_label(th)
+            mine, theirs = out["series"][name][label], out["series"][ref][label]
+            a, b = mine["capacity"], theirs["capacity"]
+            # Two capacities that are both only bounds have no known ratio.
+            known = not (mine["lower_bound"] and theirs["lower_bound"]) or name == ref
+            g[label] = {"ratio": a / b if a is not None and b and known else None,
+                        "difference": a - b if a is not None and b is not None and known else None,
+                        "reference_lower_bound": bool(theirs["lower_bound"]) and name != ref}
         gains[name] = g
     out["gain_over_reference"] = gains
     return out
 
 
+def references(names: list[str], reference: str | None) -> dict[str, str | None]:
+    """Each series' reference series (see ``capacity``), None where the spec's reference has no
+    series that matches it."""
+    if reference is None:
+        return {n: names[0] for n in names}
+    wanted = dict(part.split("=", 1) for part in reference.split(", ") if "=" in part)
+    out: dict[str, str | None] = {}
+    for name in names:
+        parts = dict(part.split("=", 1) for part in name.split(", ") if "=" in part)
+        twin = ", ".join(f"{f}={wanted.get(f, v)}" for f, v in parts.items())
+        out[name] = twin if wanted and set(wanted) <= set(parts) and twin in names else None
+    return out
+
+
 def grouped_capacity(summary: list[dict[str, Any]], x: str, series_fields: list[str], thresholds: list[float],
-                     reference: str | None, group: str) -> dict[str, Any]:
+                     reference: str | None, group: str, loads: list[Any] | None = None) -> dict[str, Any]:
     """``capacity`` within each value of the grid field ``group`` (e.g. each work cell), with
     each series' invariant against the group's reference series (``invariant``) and whether the
     reference itself misses tasks at the group's smallest load (``reference_limited``: the work
@@ -134,18 +161,22 @@ def grouped_capacity(summary: list[dict[str, Any]], x: str, series_fields: list[
     out: dict[str, Any] = {"group": group, "groups": {}}
     shares: dict[str, dict[str, list[float | None]]] = defaultdict(lambda: defaultdict(list))
     for value, rows in groups.items():
-        cap = capacity(rows, x, inner, thresholds, reference)
+        cap = capacity(rows, x, inner, thresholds, reference, loads)
         by_series: dict[str, list[dict[str, Any]]] = defaultdict(list)
         for row in rows:
             by_series[series_name(row, inner)].append(row)
-        ref_rows = sorted(by_series.get(cap["reference"] or "", []), key=lambda r: r[x])
-        cap["invariant"] = {name: invariant(sorted(series, key=lambda r: r[x]), ref_rows, x)
-                            for name, series in by_series.items()}
-        first = ref_rows[0]["success_rate"] if ref_rows else None
-        cap["reference_limited"] = first is not None and first < 1.0
+        group_loads = sorted(set(loads or []) | {r[x] for r in rows})
+        refs = cap["references"]
+        ordered = {name: sorted(series, key=lambda r: r[x]) for name, series in by_series.items()}
+        ref_of = {name: ordered.get(refs.get(name) or "", []) for name in ordered}
+        cap["invariant"] = {name: invariant(series, ref_of[name], x, group_loads)
+                            for name, series in ordered.items()}
+        # Limited: a reference series that misses tasks at the group's smallest load.
+        cap["reference_limited"] = any(rr and rr[0]["success_rate"] is not None and rr[0]["success_rate"] < 1.0
+                                       for rr in ref_of.values())
         if not cap["reference_limited"]:
             for name, gains in cap["gain_over_reference"].items():
-                if name == cap["reference"]:
+                if name == refs.get(name):
                     continue
                 for label, g in gains.items():
                     shares[name][label].append(g["ratio"])
@@ -155,17 +186,22 @@ def grouped_capacity(summary: list[dict[str, Any]], x: str, series_fields: list[
     return out
 
 
-def invariant(rows: list[dict[str, Any]], ref_rows: list[dict[str, Any]], x: str) -> dict[str, Any]:
+def invariant(rows: list[dict[str, Any]], ref_rows: list[dict[str, Any]], x: str,
+              loads: list[Any] | None = None) -> dict[str, Any]:
     """Where the reference series places every task (success 1 at a load), the series must too.
     ``holds_upto``: the largest load up to which it holds at every such load; ``breaks_at``: the
-    first such load where the series places fewer (None: never, at the loads both have run);
-    ``loads``: how many loads were checked."""
+    first such load where the series places fewer (None: never); ``loads``: how many loads were
+    checked. The check ends at the first load (of ``loads``, by default the reference's) where
+    the reference or the series has no result: nothing is known there."""
     mine = {r[x]: r["success_rate"] for r in rows}
+    theirs = {r[x]: r["success_rate"] for r in ref_rows}
     holds_upto, breaks_at, checked = None, None, 0
-    for ref in ref_rows:
-        load, rate = ref[x], mine.get(ref[x])
-        if ref["success_rate"] is None or ref["success_rate"] < 1.0 or rate is None:
-            continue
+    for load in sorted(set(loads or []) | set(theirs)):
+        ref_rate, rate = theirs.get(load), mine.get(load)
+        if ref_rate is not None and ref_rate < 1.0:
+            continue  # the reference misses tasks here: no constraint
+        if ref_rate is None or rate is None:
+            break
         checked += 1
         if rate < 1.0:
             breaks_at = load
@@ -182,10 +218,12 @@ def capacity_text(entry: dict[str, Any]) -> str:
 
 
 def gain_text(gain: dict[str, Any], entry: dict[str, Any]) -> str:
-    """A gain over the reference series (``entry``: this series' capacity at that threshold)."""
+    """A gain over the reference series (``entry``: this series' capacity at that threshold):
+    at least it where this capacity is a bound, at most it where the reference's is."""
     if gain["ratio"] is None:
         return "-"
-    return f"{'>= ' if entry.get('lower_bound') else ''}{gain['ratio']:.3g}x"
+    bound = ">= " if entry.get("lower_bound") else "<= " if gain.get("reference_lower_bound") else ""
+    return f"{bound}{gain['ratio']:.3g}x"
 
 
 def threshold_label(threshold: float) -> str:
@@ -198,17 +236,18 @@ def capacity_of_curve(curve: list[tuple[Any, float | None]], threshold: float) -
     capacity: the largest load with every load up to it at or above the threshold (0 when the
     smallest fails; a load without a result stops the scan, since nothing is known past it).
     lower_bound: no load of the curve fails, so the capacity lies at or beyond the largest load
-    swept (extend the grid to find it).
+    swept (extend the grid to find it), or the scan stopped at a load without a result.
     """
     eps = 1e-12
     cap: Any = 0
     first_fail = None
+    unknown = False  # the scan stopped at a load without a result
     missing = []
     for load, rate in curve:
         if rate is None:
             missing.append(load)
             if first_fail is None:
-                first_fail = load
+                first_fail, unknown = load, True
             continue
         if rate + eps < threshold:
             if first_fail is None:
@@ -219,4 +258,4 @@ def capacity_of_curve(curve: list[tuple[Any, float | None]], threshold: float) -
     max_passing = max(passing) if passing else 0
     return {"capacity": cap, "first_failing": first_fail, "max_passing": max_passing,
             "monotone": max_passing == cap, "missing": missing,
-            "lower_bound": bool(curve) and first_fail is None}
+            "lower_bound": bool(curve) and (first_fail is None or unknown)}

@@ -179,7 +179,7 @@ def _sweep_progress(sweep: Any, jobs: int, stream: Any, stop: threading.Event) -
 def cmd_sweep(args: argparse.Namespace) -> int:
     from experiments.executors import make_executor
     from experiments.report import load_sweep_spec
-    from experiments.spec import SweepError, load_spec
+    from experiments.spec import SweepError, dump_spec, load_spec
     from experiments.sweep import Sweep
 
     try:
@@ -187,6 +187,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             sweep_dir = Path(args.resume)
             spec = load_spec(args.file) if args.file else load_sweep_spec(sweep_dir)
             sweep = Sweep(spec, sweep_dir)
+            if args.file:  # the report reads the spec it was resumed with (a grid extended, ...)
+                sweep.dir.write_spec(dump_spec(spec))
         elif args.file:
             sweep = Sweep.create(load_spec(args.file), Path(args.results))
         else:

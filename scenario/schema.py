@@ -419,8 +419,10 @@ class PolicyConfig(Strict):
                               "belt travel time) before a part reaches the pick window")
     stale_ms: float = Field(default=150.0, gt=0, description="`heuristic`: an upstream part's estimate "
                             "older than this is refreshed before the part's approach starts")
-    latency_budget_ms: float = Field(default=100.0, gt=0,
-                                     description="L_r signalled with the PDP (`fixed`, `heuristic`)")
+    latency_budget_ms: float = Field(default=100.0, ge=1.0,
+                                     description="L_r signalled with the PDP (`fixed`, `heuristic`); at "
+                                     "least a slot (1 ms): a packet waits for a slot boundary and is "
+                                     "delivered at a slot end")
     learned_model: str | None = Field(
         default=None, description="`learned`: the ONNX model (its model card, the .json beside it, "
         "must be there too); default domain/models/policy.onnx, made by `make train-policy`")

@@ -461,3 +461,58 @@ def test_a_caller_check_holds_every_resolved_point_and_errors_stop_at_a_cap() ->
     many = refused(spec(grid={"loops": {"start": 1, "stop": 200, "step": 1}, "duration_s": [5]},
                         set={"watchdog.run_timeout_s": 10.0, "detailed_loops": 0, "hall.work_cells_per_row": 1}))
     assert 1 < len(many) <= 21 and many[-1][0] == "(sweep)"
+
+
+def test_a_grid_load_without_a_result_leaves_the_capacity_a_bound_and_ends_the_invariant() -> None:
+    from experiments.summary import invariant
+
+    grid = {"policy.name": ["none", "heuristic"], "loops": [4, 8, 12]}
+    rows = summarise([point(4, "none", 1, 50, 50), point(12, "none", 1, 50, 50),  # 8 never ran
+                      point(4, "heuristic", 1, 50, 50), point(8, "heuristic", 1, 50, 50),
+                      point(12, "heuristic", 1, 50, 50)], grid)
+    cap = capacity(rows, "loops", ["policy.name"], [1.0], "policy.name=none", loads=grid["loops"])
+    entry = cap["series"]["policy.name=none"]["success>=100%"]
+    assert (entry["capacity"], entry["lower_bound"], entry["missing"]) == (4, True, [8])
+    # Nothing is known of the reference at 8: the invariant is checked up to 4 only.
+    none = [r for r in rows if r["policy.name"] == "none"]
+    mine = [r for r in rows if r["policy.name"] == "heuristic"]
+    assert invariant(mine, none, "loops", grid["loops"]) == {"holds_upto": 4, "breaks_at": None, "loads": 1}
+
+
+def test_a_reference_naming_part_of_a_series_compares_each_series_with_its_twin() -> None:
+    grid = {"policy.signalling": ["app", "lower"], "policy.name": ["heuristic", "none"], "loops": [4, 8, 12]}
+    fails = {("app", "none"): 8, ("lower", "none"): 12, ("app", "heuristic"): 12, ("lower", "heuristic"): 99}
+    pts = [{**point(load, pol, 1, 50, 50 if load < fails[sig, pol] else 40), "policy.signalling": sig,
+            "key": f"{sig}{pol}{load}"} for sig in grid["policy.signalling"] for pol in grid["policy.name"]
+           for load in grid["loops"]]
+    cap = capacity(summarise(pts, grid), "loops", ["policy.signalling", "policy.name"], [1.0],
+                   "policy.name=none", loads=grid["loops"])
+    assert cap["references"]["policy.signalling=lower, policy.name=heuristic"] == \
+        "policy.signalling=lower, policy.name=none"
+    gains = cap["gain_over_reference"]
+    assert gains["policy.signalling=app, policy.name=heuristic"]["success>=100%"]["ratio"] == 2.0  # 8 / 4
+    # Over a reference of 8 that is exact, a series that never failed gains at least 12 / 8.
+    lower = gains["policy.signalling=lower, policy.name=heuristic"]["success>=100%"]
+    assert lower["ratio"] == 1.5 and not lower["reference_lower_bound"]
+
+
+def test_a_group_without_its_reference_has_no_gains_and_bounds_on_both_sides_no_ratio() -> None:
+    from experiments.summary import gain_text
+
+    pts = [cell_point("a", 4, "none", 10, 10), cell_point("a", 8, "none", 10, 9),
+           cell_point("a", 4, "learned", 10, 10), cell_point("a", 8, "learned", 10, 10),
+           cell_point("b", 4, "learned", 10, 10), cell_point("b", 8, "learned", 10, 10)]
+    grid = {"variant": ["a", "b"], "policy.name": ["none", "learned"], "loops": [4, 8]}
+    g = grouped_capacity(summarise(pts, grid), "loops", ["variant", "policy.name"], [1.0],
+                         "policy.name=none", "variant", grid["loops"])
+    assert g["groups"]["b"]["gain_over_reference"] == {}
+    assert g["gain_shares"]["policy.name=learned"]["success>=100%"] == [2.0]  # cell a alone
+    # Both capacities only bounds: no ratio; only the reference's: at most.
+    rows = summarise([point(load, pol, 1, 10, 10) for pol in ("none", "learned") for load in (4, 8)]
+                     + [point(4, "heuristic", 1, 10, 10), point(8, "heuristic", 1, 10, 9)],
+                     {"policy.name": ["none", "learned", "heuristic"], "loops": [4, 8]})
+    cap = capacity(rows, "loops", ["policy.name"], [1.0], "policy.name=none", loads=[4, 8])
+    gains = cap["gain_over_reference"]
+    assert gains["policy.name=learned"]["success>=100%"]["ratio"] is None
+    heuristic = gains["policy.name=heuristic"]["success>=100%"]
+    assert gain_text(heuristic, cap["series"]["policy.name=heuristic"]["success>=100%"]) == "<= 0.5x"
