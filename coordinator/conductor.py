@@ -49,6 +49,10 @@ HealthCheck = Callable[[], None]  # raises RunFailed
 # A dead federate fails the run within this much wall time; checking before every control
 # message (several a window) would cost more than the windows themselves.
 HEALTH_EVERY_S = 0.05
+# While reports are collected after the run: how often the processes yet to report are looked
+# at, and how long a report of one that has exited may still take to arrive.
+DEAD_EVERY_S = 0.5
+REPORT_GRACE_S = 1.0
 
 
 class Conductor:
@@ -207,18 +211,27 @@ class Conductor:
                 dones[d.federate] = d
         return dones
 
-    def stop(self, reason: str, timeout_s: float = 30.0, gone: Iterable[str] = ()) -> dict[str, Stopped]:
+    def stop(self, reason: str, timeout_s: float = 30.0, gone: Iterable[str] = (),
+             dead: Callable[[], Iterable[str]] | None = None) -> dict[str, Stopped]:
         """Tell every federate to finish (write its results) and collect their reports, but for
-        those known ``gone`` (dead or lost: none would come)."""
+        those known ``gone`` (dead or lost: none would come). ``dead()``: the federates whose
+        process has ended; once every report still missing is theirs, the wait ends
+        ``REPORT_GRACE_S`` later (a report sent just before the exit may still be on its way)."""
         self.bus.publish(keys.stop(self.run_id), Stop(reason=reason, t_us=self.t_us).encode())
         got: dict[str, Stopped] = {}
         expected = set(self.reporters) - set(gone)
         deadline = time.monotonic() + timeout_s
         while not expected <= got.keys():
-            # Federates exit once they reported: no health check while collecting reports.
-            item = self._next(deadline, check_health=False)
+            # Federates exit once they reported: no health check while collecting reports, only
+            # whether those yet to report have died (a runtime may ask its daemon: not often).
+            item = self._next(min(deadline, time.monotonic() + DEAD_EVERY_S), check_health=False)
             if item is None:
-                break
+                now = time.monotonic()
+                if now >= deadline:
+                    break
+                if dead is not None and expected - got.keys() <= set(dead()):
+                    deadline = min(deadline, now + REPORT_GRACE_S)
+                continue
             kind, key, payload = item
             if kind == "stopped":
                 s = Stopped.decode(payload)

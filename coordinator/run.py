@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import secrets
 import socket
 import threading
@@ -129,6 +130,22 @@ class LivenessWatch:
             self.lost.append(name)
 
 
+ROUTER_ATTEMPTS = 3
+
+
+def _open_router(launcher: Launcher) -> tuple[int, ZenohBus]:
+    """The run's zenoh router on a free port: a port is free when chosen, and another process
+    (a run beside this one) may take it before the router binds, so a few are tried."""
+    for attempt in range(ROUTER_ATTEMPTS):
+        port = free_port()
+        try:
+            return port, ZenohBus(launcher.router_listen_endpoint(port), mode="router")
+        except Exception:
+            if attempt == ROUTER_ATTEMPTS - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
 def execute_run(
     scenario: Scenario,
     results_root: Path,
@@ -151,24 +168,30 @@ def execute_run(
         else:
             from coordinator.runtime_process import ProcessLauncher
             launcher = ProcessLauncher()
+    created: Path | None = None  # this run's directory, once made
     try:  # what the launcher holds already (a Ray session) is released if the run cannot start
         run_id = run_id or new_run_id(scenario)
         run_dir = (results_root / run_id).resolve()
         run_dir.mkdir(parents=True, exist_ok=False)
+        created = run_dir
         scenario_path = run_dir / "config.yaml"
         scenario_path.write_text(dump_scenario(scenario))
         write_json(run_dir / "versions.json", versions())
-        write_json(run_dir / "status.json", {"run_id": run_id, "status": RunState.RUNNING, "seed": scenario.seed})
+        write_json(run_dir / "status.json", {"run_id": run_id, "status": RunState.RUNNING, "seed": scenario.seed,
+                                             "coordinator": coordinator_identity()})
         wall0 = time.monotonic()
-        port = free_port()
-        router = ZenohBus(launcher.router_listen_endpoint(port), mode="router")
+        port, router = _open_router(launcher)
         try:  # parts streamed by federates on nodes that do not see run_dir
             sink = RecordSink(router, run_id, run_dir, [name for name, _ in federates(scenario)])
         except BaseException:
             router.close()
             raise
-    except BaseException:
+    except BaseException as exc:
         launcher.stop()
+        if created is not None:  # its status is not left running
+            write_json(created / "status.json", {"run_id": created.name, "status": RunState.FAILED,
+                                                 "seed": scenario.seed,
+                                                 "reason": f"the run could not start: {type(exc).__name__}: {exc}"})
         raise
     conducted_s: float | None = None  # wall time of the windows, once they all ran
     status, reason, failed_federate = RunState.COMPLETED, None, None
@@ -241,7 +264,7 @@ def execute_run(
                 # Healthy federates write their tables before leaving, also when the run failed.
                 gone = {*liveness.lost, *launcher.dead()} if status != RunState.COMPLETED else set()
                 stopped = conductor.stop(status, timeout_s=30.0 if status == RunState.COMPLETED else 3.0,
-                                         gone=gone)
+                                         gone=gone, dead=lambda: launcher.dead())
                 # A federate closes its tables before it reports: their last streamed bytes are
                 # on their way, behind the report.
                 unsettled = sink.settle({n: s.summary.get("records", {}) for n, s in stopped.items()
@@ -256,7 +279,11 @@ def execute_run(
     sim_s = min(sim_us, scenario.duration_us) / 1e6
     if status == RunState.COMPLETED and len(stopped) < len(federates(scenario)):
         missing = sorted({n for n, _ in federates(scenario)} - set(stopped))
-        status, reason = RunState.FAILED, f"no final report from {', '.join(missing)}"
+        dead = launcher.dead()
+        how = "; ".join(f"{n} {dead[n]}" for n in missing if n in dead)
+        status, reason = RunState.FAILED, f"no final report from {', '.join(missing)}" + (f": {how}" if how else "")
+        failed_federate = missing[0]
+        log_tail = launcher.last_log_lines(failed_federate, 20)
     lost = launcher.records_lost()
     if status == RunState.COMPLETED and lost:
         status, reason = RunState.FAILED, f"the records of {', '.join(lost)} did not come back from their nodes"
@@ -336,13 +363,40 @@ def close_records(run_dir: Path, sim_time_reached_s: float | None = None) -> dic
     return {"sim_time_reached_s": sim_time_reached_s, **recorded}
 
 
+def coordinator_identity() -> dict[str, Any]:
+    """This process as a run's status names its coordinator: host, pid and the pid's start time
+    (a pid is reused, after a restart or in a new container, where the start time is not)."""
+    return {"host": socket.gethostname(), "pid": os.getpid(), "started": _started(os.getpid())}
+
+
+def _started(pid: int) -> str | None:
+    try:  # field 22 of /proc/<pid>/stat, after the command name in parentheses
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def coordinator_alive(run_dir: Path) -> int | None:
+    """The pid of the coordinator still running ``run_dir``'s run on this host, else None."""
+    try:
+        who = json.loads((run_dir / "status.json").read_text()).get("coordinator") or {}
+    except (OSError, ValueError):
+        return None
+    pid = who.get("pid")
+    if who.get("host") != socket.gethostname() or not isinstance(pid, int) or pid == os.getpid():
+        return None
+    started = _started(pid)
+    return pid if started is not None and started == who.get("started") else None
+
+
 def salvage_run(run_dir: Path, reason: str) -> dict[str, Any] | None:
     """Close the records of a run whose coordinator died before it ended: merge what every
     federate streamed (``tables/`` parts) into the run tables and write ``kpis.json`` with status
     ``failed``, ``reason`` and how far the records go (``recorded``), so that nothing written is
-    lost and the run says where it stopped. A run that has its ``kpis.json`` is left as it is
-    (None); otherwise the KPIs written."""
-    if (run_dir / "kpis.json").exists() or not run_dir.is_dir():
+    lost and the run says where it stopped. A run that has its ``kpis.json``, or whose coordinator
+    is still running it (its parts are being written), is left as it is (None); otherwise the
+    KPIs written."""
+    if (run_dir / "kpis.json").exists() or not run_dir.is_dir() or coordinator_alive(run_dir):
         return None
     status = {}
     try:

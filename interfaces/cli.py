@@ -127,6 +127,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ScenarioError as exc:
         print(f"{args.file}: invalid scenario\n{exc.format()}", file=sys.stderr)
         return 2
+    if args.run_id and (Path(args.results) / args.run_id).exists():
+        print(f"--run-id {args.run_id}: {Path(args.results) / args.run_id} exists already (a run directory "
+              f"is never reused): give another run id, or leave it out for a new one", file=sys.stderr)
+        return 2
     launcher = None
     if args.address and sc.runtime != "ray":
         print(f"--address is for runtime ray, and this run's runtime is {sc.runtime}: add --set runtime=ray",
@@ -252,13 +256,18 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_salvage(args: argparse.Namespace) -> int:
-    from coordinator.run import salvage_run
+    from coordinator.run import coordinator_alive, salvage_run
 
     code = 0
     for d in args.run_dirs:
         run_dir = Path(d)
         if not run_dir.is_dir():
             print(f"{run_dir}: no such run directory", file=sys.stderr)
+            code = 2
+            continue
+        if (pid := coordinator_alive(run_dir)) is not None:
+            print(f"{run_dir}: still running (its coordinator, pid {pid}, is alive); left as it is",
+                  file=sys.stderr)
             code = 2
             continue
         kpis = salvage_run(run_dir, args.reason)

@@ -183,3 +183,11 @@ def test_silent_federate_fails_the_window(tmp_path: Path) -> None:
     with pytest.raises(RunFailed, match="ghost"):
         conductor.run()
     assert time.monotonic() - t0 < 5
+
+
+def test_collecting_reports_ends_soon_after_the_only_ones_missing_are_of_dead_federates(tmp_path: Path) -> None:
+    hub = InMemoryHub()
+    conductor = Conductor(InMemoryBus(hub), "t1", ["ghost"], W, 10_000, window_timeout_s=0.3)
+    t0 = time.monotonic()
+    assert conductor.stop("completed", timeout_s=30, dead=lambda: ["ghost"]) == {}
+    assert time.monotonic() - t0 < 5  # the report grace, not the 30 s

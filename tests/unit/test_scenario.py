@@ -219,3 +219,10 @@ def test_bad_agvs_and_handover_are_refused_naming_the_field(data: dict, field: s
     (where, said), = err.value.errors
     assert where == field
     assert re.search(message, said), said
+
+
+def test_a_run_id_in_use_exits_2_before_anything_runs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    (tmp_path / "taken").mkdir()
+    smoke = Path(__file__).parents[2] / "configs" / "scenarios" / "smoke.yaml"
+    assert main(["run", str(smoke), "--results", str(tmp_path), "--run-id", "taken", "--quiet"]) == 2
+    assert "--run-id taken" in capsys.readouterr().err and not (tmp_path / "taken" / "status.json").exists()

@@ -61,7 +61,7 @@ def test_co_design_keeps_frames_spaced_where_its_results_were_not_measured_other
     keeps = {name: {p.scenario.camera.frame_keep
                     for p in expand(load_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml", SCENARIOS), SCENARIOS)}
              for name in ("family", "overload", "codesign", "codesign_family", "sensitivity", "sensitivity_detailed")}
-    assert keeps == {"family": {"spaced"}, "overload": {"bernoulli"}, "codesign": {"bernoulli"},
+    assert keeps == {"family": {"spaced"}, "overload": {"spaced"}, "codesign": {"bernoulli"},
                      "codesign_family": {"bernoulli"}, "sensitivity": {"bernoulli"},
                      "sensitivity_detailed": {"bernoulli"}}
 
