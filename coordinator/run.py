@@ -34,6 +34,7 @@ from coordinator.results import (
 )
 from coordinator.run_state import RunState
 from fabric import keys
+from fabric.messages import Stopped
 from fabric.records import RecordSink
 from fabric.tables import write_json
 from fabric.zenoh_bus import ZenohBus
@@ -293,6 +294,8 @@ def execute_run(
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it got.
     recorded = close_records(run_dir, sim_s)
+    if status == RunState.COMPLETED and (short := records_short(recorded, stopped)):
+        status, reason = RunState.FAILED, f"records lost: {short}"
     try:
         kpis = compute_kpis(run_dir, sim_s, scenario.loops)
     except Exception as exc:  # tables of a failed run may be missing or partial
@@ -361,6 +364,20 @@ def close_records(run_dir: Path, sim_time_reached_s: float | None = None) -> dic
                    if info.get("upto_s") is not None]
         sim_time_reached_s = min(reached) if reached else 0.0
     return {"sim_time_reached_s": sim_time_reached_s, **recorded}
+
+
+def records_short(recorded: dict[str, Any], stopped: dict[str, Stopped]) -> str:
+    """Where the merged tables hold fewer rows of a federate than it reports having written
+    (``records`` of its final summary), as ``name/table merged of written``; empty if none."""
+    merged: dict[tuple[str, str], int] = {}
+    for part in recorded.get("parts", []):
+        key = (part["federate"], part["table"])
+        merged[key] = merged.get(key, 0) + int(part["rows"])
+    short = [f"{name}/{table} {merged.get((name, table), 0)} of {n}"
+             for name, s in sorted(stopped.items())
+             for table, n in sorted((s.summary.get("records") or {}).items())
+             if isinstance(n, int) and merged.get((name, table), 0) < n]
+    return ", ".join(short)
 
 
 def coordinator_identity() -> dict[str, Any]:
