@@ -265,7 +265,7 @@ def execute_run(
                 # Healthy federates write their tables before leaving, also when the run failed.
                 gone = {*liveness.lost, *launcher.dead()} if status != RunState.COMPLETED else set()
                 stopped = conductor.stop(status, timeout_s=30.0 if status == RunState.COMPLETED else 3.0,
-                                         gone=gone, dead=lambda: launcher.dead())
+                                         gone=gone, dead=launcher.dead)
                 # A federate closes its tables before it reports: their last streamed bytes are
                 # on their way, behind the report.
                 unsettled = sink.settle({n: s.summary.get("records", {}) for n, s in stopped.items()

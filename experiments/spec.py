@@ -11,7 +11,7 @@ import itertools
 import json
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, get_args
 
@@ -517,14 +517,14 @@ class _Verifier:
         """A limit's error, named where ``field`` gets its value."""
         if variant is not None and self._in(field, self.spec.variants[variant]):
             return f"variants.{variant}.{field}", message
-        if any(field == p or field.startswith(p + ".") for p in self._swept):
+        if self._in(field, self._swept):
             return where, f"{prefix}{field}: {message}"
         return (f"set.{field}" if self._in(field, self.spec.set) else f"base.{field}"), message
 
     @staticmethod
-    def _in(field: str, fields: dict[str, Any]) -> bool:
-        return any(field == p or field.startswith(p + ".") for p in fields)
-
+    def _in(field: str, paths: Iterable[str]) -> bool:
+        """Whether one of ``paths`` (dotted) is ``field`` or a section holding it."""
+        return any(field == p or field.startswith(p + ".") for p in paths)
 
 
 def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpec:
@@ -534,7 +534,7 @@ def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpe
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
-        raise SweepError([("file", f"{p} is not valid YAML: {exc or 'nested too deep'}")]) from None
+        raise SweepError([("file", f"{p} is not valid YAML: {exc}")]) from None
     return parse_spec(data, scenarios_dir)
 
 

@@ -928,7 +928,7 @@ def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scena
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
-        raise ScenarioError([("file", f"{p} is not valid YAML: {exc or 'nested too deep'}")]) from None
+        raise ScenarioError([("file", f"{p} is not valid YAML: {exc}")]) from None
     return parse_scenario(data, overrides)
 
 
