@@ -41,6 +41,10 @@ from wire.bodies import (
     Truth,
 )
 
+# A frame not in this long after its capture is lost for good: no delay budget lets a packet
+# wait that long, and the tracker has long dropped what it would show.
+LOST_FRAME_US = 5_000_000
+
 
 @dataclass
 class AbstractLoop:
@@ -155,6 +159,11 @@ class LoopsFederate(Federate):
         size = int(sizes[lp.size_rng.integers(0, len(sizes))])
         _, ready = lp.camera_cpu.run("compress", self.now, int, size)
         lp.truth[fid] = (capture_us, objects)
+        # Frames kept long ago and not in yet are given up here too, for a loop none of whose
+        # frames gets through (trimmed only where one does, they grew for the whole run).
+        while (oldest := next(iter(lp.truth))) != fid and lp.truth[oldest][0] < capture_us - LOST_FRAME_US:
+            lp.truth.pop(oldest)
+            lp.arrived.pop(oldest, None)
         self.schedule(ready, self._transmit, lp.index, fid, size)
 
     def _transmit(self, loop: int, fid: int, size: int) -> None:
@@ -174,6 +183,8 @@ class LoopsFederate(Federate):
     def _frame_packets(self, lp: AbstractLoop, fid: int, n: int, count: int) -> None:
         """``count`` of frame ``fid``'s ``n`` packets arrived (netsim delivers a frame's packets of
         one slot as one message); the frame goes to pose estimation when the last is in."""
+        if fid not in lp.truth:  # given up for lost (LOST_FRAME_US)
+            return
         got = lp.arrived.get(fid, 0) + count
         if got < n:
             if fid not in lp.arrived:

@@ -21,7 +21,7 @@ from fabric.federate import NEVER_US, FederateContext
 from fabric.messages import Advance, Message
 from netsim.federate import make_cell
 from scenario.schema import Scenario, ScenarioError, load_scenario, parse_scenario
-from services.loops.federate import LoopsFederate
+from services.loops.federate import LOST_FRAME_US, LoopsFederate
 from wire.bodies import Aframe, Packet, Packets, Truth
 
 FACTORY_SMALL = Path(__file__).resolve().parents[2] / "configs" / "scenarios" / "factory_small.yaml"
@@ -134,11 +134,9 @@ def test_a_gnbs_congestion_throttles_its_own_loops_only() -> None:
 
 
 # ---- the backhaul of a central Edge, on the abstract loops' federate ------------------------------
-def run_loops(sc: Scenario, results_dir: Path, gnbs: list[int], frame_at_us: int
-              ) -> tuple[LoopsFederate, list[tuple[int, str, int, Any]]]:
-    """The loops federate of ``sc`` on an in-memory bus: loop 0 captures a frame at 0, netsim
-    delivers all its packets at ``frame_at_us``; every message it sends (now, to, at, body) until
-    0.2 s."""
+def loops_federate(sc: Scenario, results_dir: Path, gnbs: list[int]) -> LoopsFederate:
+    """The loops federate of ``sc`` on an in-memory bus, set up (frame model and Edge plan in
+    ``results_dir``)."""
     model = json.loads(FRAME_MODEL.read_text())
     model["settings"].update(camera_settings(sc.camera))
     results_dir.mkdir(parents=True)
@@ -146,6 +144,15 @@ def run_loops(sc: Scenario, results_dir: Path, gnbs: list[int], frame_at_us: int
     write_plan(make_plan(sc, gnbs), results_dir)
     fed = LoopsFederate(FederateContext("loops", "t1", sc, results_dir), InMemoryBus(InMemoryHub()))
     fed.setup()
+    return fed
+
+
+def run_loops(sc: Scenario, results_dir: Path, gnbs: list[int], frame_at_us: int
+              ) -> tuple[LoopsFederate, list[tuple[int, str, int, Any]]]:
+    """The loops federate of ``sc`` on an in-memory bus: loop 0 captures a frame at 0, netsim
+    delivers all its packets at ``frame_at_us``; every message it sends (now, to, at, body) until
+    0.2 s."""
+    fed = loops_federate(sc, results_dir, gnbs)
     sent: list[tuple[int, str, int, Any]] = []
     send = fed.send
 
@@ -163,6 +170,19 @@ def run_loops(sc: Scenario, results_dir: Path, gnbs: list[int], frame_at_us: int
                                Aframe(loop=0, frame_id=0, n=n, idx=list(range(n))), None, k - 1))
         fed.process_window(Advance(window=k, t_start_us=k * W, t_end_us=(k + 1) * W, expected_in={}))
     return fed, sent
+
+
+def test_a_loop_none_of_whose_frames_gets_through_keeps_a_bounded_record_of_them(tmp_path: Path) -> None:
+    sc = hall_scenario().model_copy(update={"duration_s": 8.0})
+    fed = loops_federate(sc, tmp_path / "r", [0, 0, 0, 0])  # netsim never delivers a frame
+    lp, largest = fed.loops[0], 0
+    for k in range(8000):  # a frame from physics every 33 ms (readout 2 ms), for 8 s
+        if k % 33 == 2:
+            fed.accept(Message(k * W, "physics", "loops", k, "sense", "truth",
+                               Truth(loop=0, capture_us=(k - 2) * W, objects=[]), None, k))
+        fed.process_window(Advance(window=k, t_start_us=k * W, t_end_us=(k + 1) * W, expected_in={}))
+        largest = max(largest, len(lp.truth))
+    assert lp.frames_kept > 200 and largest <= LOST_FRAME_US // 33_000 + 2
 
 
 def downlinks(sent: list[tuple[int, str, int, Any]], flow: str) -> list[int]:
