@@ -196,10 +196,12 @@ class Sweep:
         """Run ``todo`` wave by wave, then the extra seeds ``repeat_until`` asks for (appended to
         ``points``), until nothing is left or the sweep is cancelled."""
         prog = self.progress
+        passed: list[Point] = []  # passed over: their series had stopped
         while todo and not cancel.is_set():
             for wave in self._waves(todo):
                 stopped = self._stopped_series(wave)
                 run = [p for p in wave if self._series_of(p.values) not in stopped]
+                passed += [p for p in wave if self._series_of(p.values) in stopped]
                 with prog.lock:
                     prog.total -= len(wave) - len(run)
                     prog.passed_over += len(wave) - len(run)
@@ -207,10 +209,15 @@ class Sweep:
                     executor.run([self._task(p) for p in run], on_start, on_done, cancel)
                 if cancel.is_set():
                     return
-            todo = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
-            points += todo
+            extra = [p for p in self._more_seeds(points) if p.key not in self.dir.completed_keys()]
+            points += extra
+            # Seeds added to a series may lift the loads that stopped it: what was passed over is
+            # looked at again, in its wave (a round that adds no seed ends the sweep).
+            again, passed = (passed, []) if extra else ([], passed)
+            todo = extra + again
             with prog.lock:
                 prog.total += len(todo)
+                prog.passed_over -= len(again)
 
     def run(self, executor: Executor, cancel: threading.Event | None = None,
             on_event: Callable[[str, dict[str, Any]], None] | None = None) -> dict[str, Any]:

@@ -516,3 +516,30 @@ def test_a_group_without_its_reference_has_no_gains_and_bounds_on_both_sides_no_
     assert gains["policy.name=learned"]["success>=100%"]["ratio"] is None
     heuristic = gains["policy.name=heuristic"]["success>=100%"]
     assert gain_text(heuristic, cap["series"]["policy.name=heuristic"]["success>=100%"]) == "<= 0.5x"
+
+
+def test_seeds_added_until_enough_tasks_let_a_series_run_the_loads_it_had_passed_over(tmp_path: Path) -> None:
+    from experiments.point_runs import PointOutcome, PointTask
+    from experiments.sweep import Sweep
+
+    ran: list[tuple[int, int]] = []  # (seed, loops); seed 1 misses a part at loads 4 and 6
+
+    class TableExecutor:
+        name = "table"
+
+        def run(self, tasks: list[PointTask], on_start: Any, on_done: Any, cancel: Any) -> None:
+            for t in tasks:
+                on_start(t)
+                loops, seed = t.point.values["loops"], t.point.seed
+                ran.append((seed, loops))
+                on_done(t, PointOutcome(t.point.key, t.run_id, "completed", None, t.runs_dir / t.run_id, 0.1,
+                                        {"tasks": 10, "tasks_placed": 9 if seed == 1 and loops in (4, 6) else 10}))
+
+    data = spec(grid={"policy.name": ["none"], "loops": [2, 4, 6, 8]}, repeat_until={"min_tasks": 100, "max_seeds": 10},
+                capacity={"thresholds": [0.98], "stop_after": 2})
+    sweep = Sweep.create(parse_spec(data, SCENARIOS), tmp_path, scenarios_dir=SCENARIOS)
+    cap = sweep.run(TableExecutor())  # type: ignore[arg-type]
+    # Seed 1 stopped the series at 4 and 6 (90 %); pooled over 10 seeds they pass (99 %), so 8 runs.
+    assert ran.index((1, 8)) > ran.index((10, 6)) and {s for s, loops in ran if loops == 8} == set(range(1, 11))
+    assert cap["series"]["policy.name=none"]["success>=98%"]["capacity"] == 8
+    assert sweep.dir.meta()["passed_over"] == 0
