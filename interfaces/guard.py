@@ -30,7 +30,9 @@ _QUERY_TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")
 # The deepest JSON a request may nest (a scenario or a sweep spec needs under 10 levels); deeper
 # is refused before any parser recurses into it.
 MAX_JSON_DEPTH = 32
-_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
+# A string to its closing quote, or to the end of an unterminated one: matched in one pass
+# (a required closing quote made an unterminated string of escapes cost the square of its length).
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"?')
 _NOT_BRACKETS = bytes(b for b in range(256) if b not in b"[]{}")
 
 
@@ -47,10 +49,11 @@ class Guard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        send = _nosniff(send)
+        send = _safe_headers(send)
         headers = _headers(scope)
         declared = headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_body_bytes):
+        if declared is not None and (not (declared.isascii() and declared.isdigit())
+                                     or int(declared) > self.max_body_bytes):
             await self._too_large(send)
             return
         if scope["path"] not in PUBLIC_PATHS and not self._authorised(scope, headers):
@@ -128,7 +131,10 @@ def _cookie(header: str, name: str) -> str | None:
 
 
 def _query_value(query: str, name: str) -> str | None:
-    values = parse_qs(query, max_num_fields=64).get(name)
+    try:
+        values = parse_qs(query, max_num_fields=64).get(name)
+    except ValueError:  # more fields than that: no token read from it
+        return None
     return values[0] if values else None
 
 
@@ -146,10 +152,15 @@ def _replay(body: bytes, receive: Receive) -> Receive:
     return replay
 
 
-def _nosniff(send: Send) -> Send:
+def _safe_headers(send: Send) -> Send:
+    """Every answer is not sniffed, and not stored by a browser or proxy (pages and results are
+    the token holder's; a shared machine's cache would keep them past the session)."""
     async def wrapped(message: Message) -> None:
         if message["type"] == "http.response.start":
-            message["headers"] = [*message.get("headers", []), (b"x-content-type-options", b"nosniff")]
+            headers = list(message.get("headers", []))
+            if not any(k.lower() == b"cache-control" for k, _ in headers):
+                headers.append((b"cache-control", b"no-store"))
+            message["headers"] = [*headers, (b"x-content-type-options", b"nosniff")]
         await send(message)
 
     return wrapped

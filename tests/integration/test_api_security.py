@@ -550,9 +550,10 @@ def test_a_request_names_no_file_of_the_coordinators_host(tmp_path: Path) -> Non
     assert held.started == []
 
 
-def test_answers_are_not_sniffed_and_the_docs_need_no_network(client: Client) -> None:
-    for path in ("/healthz", "/runs", "/nope"):
-        assert client.get(path, headers=AUTH).headers["x-content-type-options"] == "nosniff"
+def test_answers_are_not_sniffed_nor_stored_and_the_docs_need_no_network(client: Client) -> None:
+    for path in ("/healthz", "/runs", "/nope", "/"):
+        r = client.get(path, headers=AUTH)
+        assert r.headers["x-content-type-options"] == "nosniff" and r.headers["cache-control"] == "no-store"
     assert client.get("/runs").headers["x-content-type-options"] == "nosniff"  # the 401 too
     page = client.get("/docs", headers=AUTH).text
     scripts = re.findall(r"""(?:src|href)=["']([^"']+)""", page)
@@ -576,3 +577,20 @@ def test_a_token_in_a_query_never_reaches_the_access_log(client: Client) -> None
         f.filter(record)
     line = record.getMessage()
     assert TOKEN not in line and "token=***" in line and "next=/" in line
+
+
+def test_a_body_of_escapes_is_read_in_one_pass() -> None:
+    from interfaces.guard import _JSON_STRING, json_depth
+
+    # An unterminated string of escapes is one match to its end, as a closed one is: without
+    # that, the depth check tried again from every escape (1 MB of them took about an hour).
+    unterminated = b'"' + b'\\"' * 500_000
+    match = _JSON_STRING.match(unterminated)
+    assert match is not None and match.end() == len(unterminated)
+    assert json_depth(b'[' + unterminated[:2001]) == 1
+    assert json_depth(b'{"a": [{"b": "[[["}]}') == 3
+
+
+def test_login_with_more_query_fields_than_read_is_refused_not_an_error(client: Client) -> None:
+    flood = "&".join(["a=1"] * 65)
+    assert client.get(f"/login?{flood}").status_code == 401
