@@ -18,7 +18,7 @@ from typing import Any, get_args
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from experiments.summary import series_name
+from experiments.summary import references, series_name
 from scenario.schema import (
     NAME_MAX,
     SEED_LIMIT,
@@ -256,9 +256,9 @@ class SweepSpec(SpecModel):
             raise ValueError(f"capacity.group = {self.capacity.group!r} is the load axis capacity.x; "
                              "group by another grid field")
         if self.capacity.reference is not None and (names := self.series_names()) is not None:
-            # The reference names a series, or part of one (read within each layout or group).
-            wanted = set(self.capacity.reference.split(", "))
-            if not any(wanted <= set(name.split(", ")) for name in names):
+            # The reference names a series, or part of one (read within each layout or group):
+            # the read-out's own matching (summary.references) must find it for some series.
+            if not any(references(names, self.capacity.reference).values()):
                 shown = ", ".join(repr(n) for n in names[:12]) + (", ..." if len(names) > 12 else "")
                 raise ValueError(f"capacity.reference = {self.capacity.reference!r} names no series of "
                                  f"the grid; its series: {shown}")
