@@ -195,11 +195,13 @@ class PickController:
         q, err = self.kin.solve(self.p_sp, self.rot, self.q_sp)
         return self.command(q, err), self.suction
 
-    def plan(self, now: int) -> None:
+    def plan(self, now: int, tip: np.ndarray | None = None) -> None:
         """Advance the state machine, the suction command and the cup setpoint ``p_sp`` (the pose
         the IK then solves for, from ``q_sp``, with orientation ``rot``) one control period, the
-        one starting at ``now`` (us)."""
-        tip = self.kin.tcp_position(self.q)
+        one starting at ``now`` (us); ``tip``: the cup's position at the measured joints (m, cell
+        frame; None: computed here)."""
+        if tip is None:
+            tip = self.kin.tcp_position(self.q)
         track = None
         if self.target is not None:
             # A target missing from the latest list (occluded by the cup, or just sealed and

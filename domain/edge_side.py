@@ -106,16 +106,24 @@ class CoDesign:
         ``state`` for ``tracker`` and ``last_frame_us``), bounded by the safety floor and the
         load control (the first decision of a policy period folds the uplink's last period into
         both first)."""
+        return self.decide_many(now_us, [(loop, tracker, last_frame_us)])[0]
+
+    def decide_many(self, now_us: int, loops: list[tuple[int, Tracker, int | None]]) -> list[Qos]:
+        """``decide`` for each (loop, tracker, last frame time) of ``loops`` at ``now_us`` (us),
+        the policy asked once for all of them."""
         if now_us != self._period_us:
             self._period_us = now_us
             self.period(now_us)
-        state = self.state(loop, now_us, tracker, last_frame_us)
-        qos = self.apply(loop, state, self.policy.decide(state))
-        metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
-        acc = self._pdp.setdefault(loop, [0.0, 0])
-        acc[0] += qos.pdp
-        acc[1] += 1
-        return qos
+        states = [self.state(loop, now_us, tracker, last) for loop, tracker, last in loops]
+        out = []
+        for (loop, _, _), state, asked in zip(loops, states, self.policy.decide_many(states), strict=True):
+            qos = self.apply(loop, state, asked)
+            metrics.LOOP_PDP.labels(str(loop)).set(qos.pdp)
+            acc = self._pdp.setdefault(loop, [0.0, 0])
+            acc[0] += qos.pdp
+            acc[1] += 1
+            out.append(qos)
+        return out
 
     def period(self, now_us: int) -> None:
         """A new policy period, starting at ``now_us`` (us): the uplink's last period folded into

@@ -62,6 +62,18 @@ class ArmKinematics:
         self._kin(np.asarray(q, dtype=float))
         return self.base_r @ self.data.site_xpos[self.site] + self.base_p
 
+    def tcp_positions(self, qs: np.ndarray) -> np.ndarray:
+        """``tcp_position`` of each row of ``qs`` (n x nq, rad): n x 3 (m), the same to the bit,
+        with one matrix product for all."""
+        x = np.empty((len(qs), 3))
+        data, site = self.data, self.site
+        for i, q in enumerate(qs):
+            data.qpos[:] = q
+            mujoco.mj_kinematics(self.model, data)
+            x[i] = data.site_xpos[site]
+        # A stack of matrix-vector products: the bits of ``base_r @ v`` for each row.
+        return (self.base_r @ x[:, :, None])[:, :, 0] + self.base_p
+
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """6 x nq geometric Jacobian of the tool centre point (base frame) at joint positions
         ``q`` (rad)."""

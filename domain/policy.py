@@ -45,6 +45,11 @@ class Policy:
         """The QoS of the loop in ``state``."""
         raise NotImplementedError
 
+    def decide_many(self, states: list[LoopState]) -> list[Qos]:
+        """``decide`` for each of ``states`` (loops decided at once: no policy keeps state
+        between decisions, so their order does not matter)."""
+        return [self.decide(state) for state in states]
+
 
 class NonePolicy(Policy):
     """Every frame matters: PDP 1, no delay budget."""
@@ -193,13 +198,22 @@ class LearnedPolicy(Policy):
     def decide(self, state: LoopState) -> Qos:
         return decode(self.logits(state), self.pdp_levels, self.budget_levels_ms)
 
+    def decide_many(self, states: list[LoopState]) -> list[Qos]:
+        # One inference for all: the network's rows are the same to the bit as one at a time
+        # (tests/unit/test_policy.py), and the call's overhead is most of a small network's cost.
+        if not states:
+            return []
+        x = np.stack([F.features(state) for state in states])
+        out = self.session.run(None, {self.input_name: x})[0]
+        return [decode(row, self.pdp_levels, self.budget_levels_ms) for row in out]
+
 
 def decode(logits: np.ndarray, pdp_levels: tuple[float, ...], budget_levels_ms: tuple[float, ...]) -> Qos:
     """The QoS of the learned policy's output ``logits`` (PDP logits, then budget logits) over
     the levels ``pdp_levels`` and ``budget_levels_ms`` (ms): mean PDP level, most likely budget."""
     n = len(pdp_levels)
-    z = logits[:n] - np.max(logits[:n])
-    prob = np.exp(z) / np.exp(z).sum()
+    e = np.exp(logits[:n] - np.max(logits[:n]))
+    prob = e / e.sum()
     pdp = round(float(prob @ np.asarray(pdp_levels)) / PDP_STEP) * PDP_STEP
     budget_ms = budget_levels_ms[int(np.argmax(logits[n:]))]
     return Qos(round(float(np.clip(pdp, min(pdp_levels), 1.0)), 4), int(budget_ms * 1000))

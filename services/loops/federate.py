@@ -14,7 +14,7 @@ import numpy as np
 
 from domain.codec import slot_after, split_packets
 from domain.controller import PickController
-from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
+from domain.edge_side import CoDesign, Edges, downlink_packet, lower_layer_qos, update_tracks
 from domain.edges import load_plan
 from domain.frame_keep import FrameKeep
 from domain.frame_model import RUN_FILE, camera_settings, model_for
@@ -212,9 +212,16 @@ class LoopsFederate(Federate):
 
     def _policy_tick(self) -> None:
         sc = self.scenario
+        # Each Edge decides for all its loops at once (one inference of a learned policy);
+        # the loops then signal in their order, as when each was decided alone.
+        asked: dict[CoDesign, list[tuple[int, Tracker, int | None]]] = {}
+        for lp in self.loops.values():
+            asked.setdefault(self.edges[lp.index], []).append((lp.index, lp.tracker, lp.last_frame_us))
+        decided = {loop: qos for codesign, loops in asked.items()
+                   for (loop, _, _), qos in zip(loops, codesign.decide_many(self.now, loops), strict=True)}
         for lp in self.loops.values():
             codesign = self.edges[lp.index]
-            qos = codesign.decide(lp.index, self.now, lp.tracker, lp.last_frame_us)
+            qos = decided[lp.index]
             message = codesign.signal(lp.index, qos, self.now)
             if message is not None:
                 # Modelled timing: the policy job's duration is drawn only when its QoS is sent.
@@ -251,11 +258,12 @@ class LoopsFederate(Federate):
         sc = self.scenario
         latest = self.now
         ctls = [lp.ctl for lp in self.loops.values()]
-        for lp in self.loops.values():
-            # Each arm's control step is ``PickController.step`` taken apart, to solve the IK of
-            # all arms in one call. The job's duration is drawn (modelled timing), so the thread
-            # time it keeps for information covers the plan only.
-            _, ready = lp.robot_cpu.run("control", self.now, lp.ctl.plan, self.now)
+        tips = self.kin.tcp_positions(np.array([c.q for c in ctls])) if ctls else np.empty((0, 3))
+        for lp, tip in zip(self.loops.values(), tips, strict=True):
+            # Each arm's control step is ``PickController.step`` taken apart, to compute the cups'
+            # positions and solve the IK of all arms in one call each. The job's duration is drawn
+            # (modelled timing), so the thread time it keeps for information covers the plan only.
+            _, ready = lp.robot_cpu.run("control", self.now, lp.ctl.plan, self.now, tip)
             latest = max(latest, ready)
         commands: list[Command] = []
         if ctls:

@@ -149,8 +149,16 @@ def test_solve_many_gives_solve_s_joints_to_the_bit() -> None:
             assert q.tobytes() == q_many[i].tobytes() and err == err_many[i]
 
 
+def test_tcp_positions_give_tcp_position_to_the_bit() -> None:
+    kin = ArmKinematics()
+    qs = np.random.default_rng(5).uniform(kin.lo, kin.hi, (200, kin.nq))
+    many = kin.tcp_positions(qs)
+    assert all(kin.tcp_position(q).tobytes() == row.tobytes() for q, row in zip(qs, many, strict=True))
+
+
 def test_controller_taken_apart_commands_what_step_commands() -> None:
-    """plan, then one ``solve_many`` over the arms, then command: the joints ``step`` gives."""
+    """The cups' positions in one call, plan, one ``solve_many`` over the arms, then command:
+    the joints ``step`` gives."""
     sc = parse_scenario({"loops": 1})
     whole = [PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
     apart = [PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S) for _ in range(3)]
@@ -164,9 +172,10 @@ def test_controller_taken_apart_commands_what_step_commands() -> None:
         for ctl, tr in zip(whole, tracks, strict=True):
             ctl.on_estimate(tr)
             expected.append(ctl.step(t))
-        for ctl, tr in zip(apart, tracks, strict=True):
+        tips = kin.tcp_positions(np.array([c.q for c in apart]))
+        for ctl, tr, tip in zip(apart, tracks, tips, strict=True):
             ctl.on_estimate(tr)
-            ctl.plan(t)
+            ctl.plan(t, tip)
         qs, errs = kin.solve_many(np.array([c.p_sp for c in apart]), apart[0].rot,
                                   np.array([c.q_sp for c in apart]))
         for ctl, q, err, (q_exp, suction), other in zip(apart, qs, errs.tolist(), expected, whole,

@@ -121,6 +121,20 @@ def test_learned_policy_runs_the_shipped_model() -> None:
     assert card["features"] == list(F.FEATURE_NAMES) and "lambda" in card
 
 
+def test_policies_decide_many_loops_as_one_at_a_time() -> None:
+    """One inference for many loops gives each loop the QoS it gets alone, to the bit."""
+    rng = np.random.default_rng(7)
+    states = [state([track(k, float(rng.uniform(-0.6, 0.2))) for k in range(int(rng.integers(0, 3)))],
+                    now_us=int(rng.integers(0, 10**6)), belt=float(rng.uniform(0.1, 0.5)),
+                    loops=int(rng.integers(1, 200)), object_period_s=float(rng.uniform(2, 6)),
+                    link=LinkEstimate(cell_queueing_s=float(rng.exponential(0.05))))
+              for _ in range(300)]
+    for name in ("learned", "heuristic", "none"):
+        pol = make_policy(PolicyConfig(name=name))
+        assert pol.decide_many(states) == [pol.decide(s) for s in states], name
+        assert pol.decide_many([]) == []
+
+
 def test_missing_model_raises_naming_the_file(tmp_path: Path) -> None:
     missing = tmp_path / "policy.onnx"
     with pytest.raises(FileNotFoundError, match=str(missing)) as err:
