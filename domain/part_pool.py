@@ -25,12 +25,16 @@ def spawn_plan(sc: Scenario, rng: np.random.Generator, step_us: int) -> list[tup
     from ``rng`` (a spread of 0 draws nothing, so adding a spread to a scenario leaves the other
     draws of the stream unchanged)."""
     cfg = sc.work_cell
-    period = int(cfg.object_period_s * 1e6)
-    jitter = int(cfg.object_jitter_s * 1e6)
+
+    def us(s: float) -> int:  # rounded, not truncated: 4.1 s is 4 099 999.9999999995 us in floats
+        return int(round(s * 1e6))
+
+    period = us(cfg.object_period_s)
+    jitter = us(cfg.object_jitter_s)
     plan = []
-    t = int(cfg.first_object_s * 1e6)
+    t = us(cfg.first_object_s)
     if cfg.first_object_spread_s:  # this belt's phase against the others'
-        t += int(rng.integers(0, int(cfg.first_object_spread_s * 1e6) + 1))
+        t += int(rng.integers(0, us(cfg.first_object_spread_s) + 1))
     while t < sc.duration_us:
         dt = int(rng.integers(-jitter, jitter + 1)) if jitter else 0
         at = max(0, (t + dt) // step_us * step_us)

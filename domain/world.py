@@ -196,18 +196,30 @@ class World:
     def command(self, cell: int, q_target: list[float], suction: bool) -> None:
         """Set the six joint servo targets ``q_target`` (rad, clipped to the servos' range) and
         the suction valve (open if ``suction``) of cell ``cell``."""
+        if not 0 <= cell < len(self.cells):  # a negative index would command another cell
+            raise ValueError(f"command for work cell {cell}: the hall has work cells 0..{len(self.cells) - 1}")
         c = self.cells[cell]
         if len(q_target) != N_JOINTS:
             raise ValueError(f"cell {cell}: command has {len(q_target)} joint targets, the arm has "
                              f"{N_JOINTS} ({', '.join(JOINTS)})")
+        q = np.asarray(q_target, dtype=float)
+        if not np.isfinite(q).all():  # NaN in one cell's controls disturbs every cell's solve
+            raise ValueError(f"cell {cell}: command has a non-finite joint target: {list(q_target)}")
         lo, hi = self._ctrl_range[cell]
         # np.clip's result (elementwise max, then min) without its dispatch
-        self.data.ctrl[c.act] = np.minimum(np.maximum(np.asarray(q_target, dtype=float), lo), hi)
+        self.data.ctrl[c.act] = np.minimum(np.maximum(q, lo), hi)
         if suction and not c.suction:
-            for task in c.active.values():  # each opening of the valve is one grasp attempt
-                if task.grasp_us is None:
-                    task.grasp_attempts += 1
-                    break
+            # Each opening of the valve is one grasp attempt, on the part the cup is over (the
+            # nearest on the floor plan of those not grasped yet).
+            tip, xpos = self.data.site_xpos[c.tcp], self.data.xpos
+
+            def off(slot: int) -> float:
+                p = xpos[c.obj_body[slot]]
+                return float((p[0] - tip[0]) ** 2 + (p[1] - tip[1]) ** 2)
+
+            waiting = [slot for slot, task in c.active.items() if task.grasp_us is None]
+            if waiting:
+                c.active[min(waiting, key=off)].grasp_attempts += 1
         c.suction = suction
         if suction and c.gripped is None:
             slot = seal_slot(self.data, c)

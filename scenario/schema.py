@@ -142,6 +142,13 @@ class InfLayoutConfig(Strict):
         return alpha
 
 
+# The floor a work cell takes (m, along x and y): its belt (1.2 m long), the arm on its pedestal
+# 0.55 m off the belt axis with the reach of a UR5e-class arm, and the platform (domain/work_cell.py).
+# Work cells nearer than this overlap: their arms, which do not collide with each other, would
+# reach through each other's belts.
+WORK_CELL_FOOTPRINT_M = 2.0
+
+
 class HallConfig(Strict):
     """The factory hall and where the work cells and the gNB stand in it (gives netsim its UE
     positions)."""
@@ -166,6 +173,15 @@ class HallConfig(Strict):
     inf_layout: InfLayoutConfig | None = Field(
         default=None, description="several gNBs on a TR 38.901 InF layout; none: the one gNB at "
         "gnb_position_m")
+
+    @field_validator("work_cell_pitch_m")
+    @classmethod
+    def _cells_do_not_overlap(cls, pitch: tuple[float, float]) -> tuple[float, float]:
+        if min(pitch) < WORK_CELL_FOOTPRINT_M:
+            raise ValueError(f"work_cell_pitch_m = ({pitch[0]:g}, {pitch[1]:g}) m would overlap the "
+                             f"work cells: each must be at least {WORK_CELL_FOOTPRINT_M:g} m, the floor "
+                             f"a work cell takes (belt, arm and platform)")
+        return pitch
 
     @model_validator(mode="after")
     def _gnbs_in_hall(self) -> HallConfig:

@@ -84,6 +84,8 @@ class PhysicsFederate(Federate):
         if stepper.running and not stepper.poll():
             return
         changes, world = self._changes, self.world
+        # Never past the run's end, which the last window may overrun.
+        until_us = min(until_us, self.scenario.duration_us)
         target = min(changes[0][0], until_us) if changes else until_us
         if world.t_us + self.step_us <= target:
             stepper.start(target, world.steps_alone())
@@ -211,9 +213,14 @@ class PhysicsFederate(Federate):
     def finish(self, reason: str) -> dict[str, Any]:
         if self._stepper is not None:
             self._stepper.wait()  # the steps running ahead, if any (their error is raised here)
-        # To the end of the last window, which no step ahead passes: the same end however far
-        # the steps ahead had got.
-        self.world.advance_to(min(max(self.now, self.window_end), self.scenario.duration_us))
+        # A completed run ends at its duration, though the last windows had nothing for this
+        # federate (none comes after them, so the world steps on as it was); any other at the
+        # end of its last window, which no step ahead passes. Either way the same end however
+        # far the steps ahead had got, and in a group or alone.
+        end_us = self.scenario.duration_us
+        if reason != "completed":
+            end_us = min(max(self.now, self.window_end), end_us)
+        self.world.advance_to(end_us)
         self._record_tasks(self.world.finish())
         return {"tasks": self.tasks_ended, "placed": self.tasks_placed,
                 "frames_rendered": self.frames_sent}

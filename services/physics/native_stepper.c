@@ -15,15 +15,26 @@
  * and then applies the conveyor drive, as World.hold_observations and World.before_step would.
  * It counts the steps done under a mutex, so the main thread can wait for one of them (and its
  * copy) without waiting for the whole handover.
+ *
+ * An error MuJoCo raises inside mj_step (an arena too small, say) calls the error handler, which
+ * must not return. The Python bindings give each of their calls a handler that raises; this
+ * thread is not theirs, and without one MuJoCo prints and ends the process. So the library sets
+ * MuJoCo's error handler (mju_user_error, whose address Python passes) to one that, in a step of
+ * this thread, keeps the message and jumps back out of mj_step: the handover ends there, and the
+ * main thread raises the message where it takes the steps back. Anywhere else it does what
+ * MuJoCo does without a handler.
  */
 
 #include <errno.h>
 #include <pthread.h>
 #include <semaphore.h>
+#include <setjmp.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
 typedef void (*step_fn)(const void *model, void *data);
+typedef void (*error_fn)(const char *msg);
 
 typedef struct {
     sem_t go;
@@ -48,7 +59,38 @@ typedef struct {
     pthread_mutex_t lock;
     pthread_cond_t progress;
     int steps_done;
+    /* MuJoCo's error in a step of the current handover (empty: none), which ended it */
+    char error[1024];
 } stepper;
+
+/* The stepper whose step this thread runs (NULL outside one), and where its error jumps to. */
+static __thread stepper *stepping;
+static __thread jmp_buf step_failed;
+/* What mju_user_error held before this library's handler, for errors outside its steps. */
+static error_fn previous_error;
+
+static void on_mujoco_error(const char *msg) {
+    stepper *s = stepping;
+    if (s == NULL) {
+        if (previous_error != NULL) previous_error(msg);
+        fprintf(stderr, "ERROR: %s\n", msg);
+        exit(EXIT_FAILURE);
+    }
+    snprintf(s->error, sizeof s->error, "%s", msg);
+    stepping = NULL;
+    longjmp(step_failed, 1);
+}
+
+/* Make MuJoCo's error handler (the variable mju_user_error at `user_error`) this library's. */
+void cosim_stepper_catch_errors(error_fn *user_error) {
+    if (*user_error != on_mujoco_error) {
+        previous_error = *user_error;
+        *user_error = on_mujoco_error;
+    }
+}
+
+/* MuJoCo's error in the last handover, "" if none. */
+const char *cosim_stepper_error(stepper *s) { return s->error; }
 
 static void wait_for(sem_t *s) {
     while (sem_wait(s) != 0 && errno == EINTR) {
@@ -80,20 +122,29 @@ void cosim_stepper_serve(stepper *s) {
     for (;;) {
         wait_for(&s->go);
         if (__atomic_load_n(&s->stop, __ATOMIC_ACQUIRE)) return;
-        for (int k = 0; k < s->steps; k++) {
-            if (k > 0) {
-                for (long i = 0; i < s->n_belt; i++) {
-                    s->qvel[s->belt[i]] = s->belt_speed;
-                    s->qvel[s->belt[i] + 1] = 0.0;
+        if (setjmp(step_failed) == 0) {
+            stepping = s;
+            for (int k = 0; k < s->steps; k++) {
+                if (k > 0) {
+                    for (long i = 0; i < s->n_belt; i++) {
+                        s->qvel[s->belt[i]] = s->belt_speed;
+                        s->qvel[s->belt[i] + 1] = 0.0;
+                    }
                 }
+                s->step(s->model, s->data);
+                if (k + 1 < s->steps) {
+                    memcpy(s->held_qpos + k * s->nq, s->qpos, sizeof(double) * s->nq);
+                    memcpy(s->held_qvel + k * s->nv, s->qvel, sizeof(double) * s->nv);
+                }
+                pthread_mutex_lock(&s->lock);
+                s->steps_done = k + 1;
+                pthread_cond_broadcast(&s->progress);
+                pthread_mutex_unlock(&s->lock);
             }
-            s->step(s->model, s->data);
-            if (k + 1 < s->steps) {
-                memcpy(s->held_qpos + k * s->nq, s->qpos, sizeof(double) * s->nq);
-                memcpy(s->held_qvel + k * s->nv, s->qvel, sizeof(double) * s->nv);
-            }
+            stepping = NULL;
+        } else {  /* a step failed (s->error): whoever waits for a step of it wakes to the error */
             pthread_mutex_lock(&s->lock);
-            s->steps_done = k + 1;
+            s->steps_done = s->steps;
             pthread_cond_broadcast(&s->progress);
             pthread_mutex_unlock(&s->lock);
         }
@@ -112,6 +163,7 @@ void cosim_stepper_go(stepper *s, int steps, const long *belt, long n_belt, doub
     s->belt_speed = belt_speed;
     s->held_qpos = held_qpos;
     s->held_qvel = held_qvel;
+    s->error[0] = '\0';
     pthread_mutex_lock(&s->lock);
     s->steps_done = 0;
     pthread_mutex_unlock(&s->lock);

@@ -55,15 +55,20 @@ def step_ahead(world: World, name: str) -> Stepper:
     return NativeStepAhead(world, lib, mj_step, name)
 
 
-def _mj_step_address() -> int | None:
-    """Where ``mj_step`` is in the libmujoco the bindings loaded (not another copy of it)."""
+def _libmujoco() -> ctypes.CDLL | None:
+    """The libmujoco the bindings loaded (not another copy of it)."""
     for path in glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")):
         try:
-            lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
+            return ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
         except OSError:
             continue
-        return ctypes.cast(lib.mj_step, ctypes.c_void_p).value
     return None
+
+
+def _mj_step_address() -> int | None:
+    """Where ``mj_step`` is in the libmujoco the bindings loaded."""
+    lib = _libmujoco()
+    return None if lib is None else ctypes.cast(lib.mj_step, ctypes.c_void_p).value
 
 
 class _SplitStep:
@@ -173,7 +178,12 @@ class NativeStepAhead(_SplitStep):
             fn.restype, fn.argtypes = None, [ptr]
         lib.cosim_stepper_try_wait.restype, lib.cosim_stepper_try_wait.argtypes = ctypes.c_int, [ptr]
         lib.cosim_stepper_finished_flag.restype, lib.cosim_stepper_finished_flag.argtypes = ptr, [ptr]
+        lib.cosim_stepper_error.restype, lib.cosim_stepper_error.argtypes = ctypes.c_char_p, [ptr]
+        lib.cosim_stepper_catch_errors.restype, lib.cosim_stepper_catch_errors.argtypes = None, [ptr]
         self._lib = lib
+        mujoco_lib = _libmujoco()
+        if mujoco_lib is not None:  # MuJoCo's errors in the thread's steps are raised here
+            lib.cosim_stepper_catch_errors(ctypes.addressof(ctypes.c_void_p.in_dll(mujoco_lib, "mju_user_error")))
         qpos, qvel = world.data.qpos, world.data.qvel
         self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address,
                                              qpos.ctypes.data, qvel.ctypes.data, qpos.size, qvel.size)
@@ -202,10 +212,17 @@ class NativeStepAhead(_SplitStep):
         k = (t_us - world.t_us) // world.dt_us  # steps of this handover before the one at t_us
         if k >= 1:
             self._lib.cosim_stepper_wait_steps(self._handle, k)
+            if self._lib.cosim_stepper_error(self._handle):
+                self.wait()  # the handover ended in an error, raised there
 
     def _join(self) -> None:
         self._lib.cosim_stepper_wait(self._handle)
         self._handed = None
+
+    def _check(self) -> None:
+        error = self._lib.cosim_stepper_error(self._handle)
+        if error:
+            raise mujoco.FatalError(error.decode(errors="replace"))
 
     def _finished(self) -> bool:
         return self._done_flag.value != 0

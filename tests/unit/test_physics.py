@@ -3,12 +3,14 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import mujoco
 import numpy as np
 import pytest
 
+from domain import hall
 from domain import work_cell as g
 from domain.arm import ARM_XML, HOME_Q, JOINTS, SERVO_LAG_S, arm_model
 from domain.controller import PickController
@@ -201,6 +203,24 @@ def test_part_spreads_are_validated() -> None:
     assert all(b - a >= 4_000_000 - 800_000 for (a, _), (b, _) in zip(plan, plan[1:], strict=False))
 
 
+def test_spawn_times_are_rounded_to_the_microsecond_not_truncated() -> None:
+    sc = parse_scenario({"work_cell": {"object_period_s": 4.1, "first_object_s": 0.7}, "duration_s": 9})
+    assert [t for t, _ in spawn_plan(sc, np.random.default_rng(1), 1000)] == [700_000, 4_800_000, 8_900_000]
+
+
+def test_a_command_for_no_work_cell_or_with_no_number_is_refused() -> None:
+    world = World(parse_scenario({"loops": 2}))
+    with pytest.raises(ValueError, match=r"work cell -1: the hall has work cells 0..1"):
+        world.command(-1, list(HOME_Q), False)
+    with pytest.raises(ValueError, match=r"work cell 2: the hall has work cells 0..1"):
+        world.command(2, list(HOME_Q), False)
+    with pytest.raises(ValueError, match="cell 0: command has a non-finite joint target"):
+        world.command(0, [float("nan"), *HOME_Q[1:]], False)
+    ctrl = world.data.ctrl.copy()
+    world.command(1, list(HOME_Q), True)  # a good one still goes through
+    assert world.cells[1].suction and np.array_equal(world.data.ctrl[world.cells[0].act], ctrl[world.cells[0].act])
+
+
 def test_belt_phases_spread_the_first_parts_and_keep_the_period() -> None:
     """With ``first_object_spread_s`` each cell's first part comes later by its own draw, the
     parts after it a period apart; without it the stream is drawn as before."""
@@ -373,6 +393,25 @@ def test_the_python_stepper_hands_back_its_steps_error_once(monkeypatch: pytest.
     assert not stepper._thread.is_alive()  # type: ignore[attr-defined]
 
 
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_mujocos_error_in_a_step_is_raised_by_either_stepper(kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An arena too small for three parts' contacts: MuJoCo's error comes back as an exception
+    where the steps are taken back, and the process goes on (MuJoCo alone would end it)."""
+    build = hall._hall_xml
+    monkeypatch.setattr(hall, "_hall_xml", lambda sc: re.sub(r'<size memory="\d+M"/>', '<size memory="8K"/>', build(sc)))
+    world = World(parse_scenario({"loops": 1, "detailed_loops": 0}))
+    stepper = make_stepper(kind, world)
+    for k in range(3):
+        world.spawn(0, y_offset_m=0.05 * (k - 1))
+    with pytest.raises(mujoco.FatalError, match="mj_stackAlloc: out of memory"):
+        for t_us in range(1000, 50_000, 1000):
+            stepper.start(t_us, world.steps_alone())
+            stepper.wait()
+    stepper.wait()  # raised once
+    stepper.close()
+    assert not stepper._thread.is_alive()  # type: ignore[attr-defined]
+
+
 def test_observations_during_a_step_show_its_start_before_the_belt_drive() -> None:
     sc = parse_scenario({"loops": 1, "duration_s": 2})
     world = World(sc)
@@ -411,6 +450,16 @@ def test_controller_places_every_part_with_ideal_poses() -> None:
     assert len(res.tasks) >= 10
     assert all(t["outcome"] == "placed" for t in res.tasks), [t for t in res.tasks if not t["success"]]
     assert all(t["grasp_attempts"] == 1 for t in res.tasks)
+
+
+def test_each_grasp_attempt_is_charged_to_the_part_under_the_cup() -> None:
+    """A part every 1.5 s keeps several on each belt: every part the arm sealed on had at least
+    one attempt of its own."""
+    sc = parse_scenario({"loops": 2, "duration_s": 14, "work_cell": {"object_period_s": 1.5}})
+    res = run_ideal(sc)
+    grasped = [t for t in res.tasks if t["grasp_us"] is not None]
+    assert len(grasped) >= 6 and len(grasped) < len(res.tasks)  # some parts were never reached
+    assert all(t["grasp_attempts"] >= 1 for t in grasped), grasped
 
 
 def test_delay_compensation_matters_at_200_ms() -> None:

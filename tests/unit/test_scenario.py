@@ -86,6 +86,13 @@ def test_an_override_nested_too_deep_is_refused_naming_it() -> None:
     assert exc.value.errors[0][0] == "loops" and "nested too deep" in exc.value.errors[0][1]
 
 
+@pytest.mark.parametrize("pitch", [[0.0, 0.0], [-8.0, 8.0], [8.0, 1.9]])
+def test_work_cells_closer_than_their_footprint_are_refused(pitch: list[float]) -> None:
+    with pytest.raises(ScenarioError, match=r"hall.work_cell_pitch_m: .* would overlap .* at least 2 m"):
+        parse_scenario({"loops": 4, "hall": {"work_cell_pitch_m": pitch}})
+    assert parse_scenario({"loops": 4, "hall": {"work_cell_pitch_m": [2.0, 2.0]}}).loops == 4
+
+
 def test_work_cells_around_the_gnbs_need_several_gnbs_and_may_not_overlap() -> None:
     spread = {"work_cell_fill": "gnbs", "work_cells_per_row": 5, "work_cell_pitch_m": [4.0, 5.0],
               "inf_layout": {"gnb_count": 18}}
