@@ -36,6 +36,10 @@ def encode_depth_delta_zlib(depth_mm: np.ndarray) -> bytes:
     r = x.copy()
     r[:, 1:] -= x[:, :-1]
     r[1:, :] -= r[:-1, :].copy()
+    # A difference of uint16 depths spans +-2^17: wrapped into int16 it keeps 16 bits, and the
+    # decoder's sums, taken modulo 2^16 back in uint16, give every depth exactly (ranges beyond
+    # 32.767 m, or jumps as large, included). Depths of a work cell never wrap.
+    r = ((r + 32768) & 0xFFFF) - 32768
     u = _zigzag(r)
     planes = np.concatenate([(u >> 8).astype(np.uint8).ravel(), (u & 0xFF).astype(np.uint8).ravel()])
     return zlib.compress(planes.tobytes(), 1)

@@ -154,6 +154,7 @@ class UplinkMonitor:
         # (loop, seq) of each frame expected and not complete -> since when (us): its first
         # packet's arrival, or when a later frame showed it was sent.
         self._partial: dict[tuple[int, int], int] = {}
+        self._unstarted: set[tuple[int, int]] = set()  # of those, shown sent and not started
         self._next: dict[int, int] = {}  # per loop: the sequence number after the highest seen
 
     def _seen(self, loop: int, seq: int, now_us: int) -> bool:
@@ -165,13 +166,20 @@ class UplinkMonitor:
             return (loop, seq) in self._partial
         for missing in range(nxt, seq):
             self._partial[(loop, missing)] = now_us
+            self._unstarted.add((loop, missing))
         self._next[loop] = seq + 1
         return True
 
     def started(self, loop: int, seq: int, now_us: int) -> None:
-        """The first packet of sent frame ``seq`` of ``loop`` arrived at ``now_us`` (us)."""
+        """The first packet of sent frame ``seq`` of ``loop`` arrived at ``now_us`` (us): from
+        now it has LOST_AFTER_US to complete (also when a later frame showed it sent before)."""
         if self._seen(loop, seq, now_us):
-            self._partial.setdefault((loop, seq), now_us)
+            key = (loop, seq)
+            if key in self._unstarted:
+                self._unstarted.discard(key)
+                self._partial[key] = now_us
+            else:
+                self._partial.setdefault(key, now_us)
 
     def frame(self, loop: int, capture_us: int, arrival_us: int, seq: int | None = None) -> None:
         """Sent frame ``seq`` of ``loop`` (None: not numbered, no gap is looked for) captured at
@@ -180,6 +188,7 @@ class UplinkMonitor:
         if seq is not None:
             self._seen(loop, seq, arrival_us)
             self._partial.pop((loop, seq), None)
+            self._unstarted.discard((loop, seq))
         d = max(0, arrival_us - capture_us) / 1e6
         last = self.delay_s.get(loop, d)
         self.delay_s[loop] = last + LOOP_ALPHA * (d - last)
@@ -208,6 +217,7 @@ class UplinkMonitor:
         stalled = sum(1 for first in self._partial.values() if now_us - first >= STALL_US)
         for key in [k for k, first in self._partial.items() if now_us - first >= LOST_AFTER_US]:
             del self._partial[key]
+            self._unstarted.discard(key)
             self.lost(key[0])
         counts = PeriodCounts(self._sum_s, self._n, self._lost, stalled)
         self._sum_s, self._n, self._lost = 0.0, 0, 0

@@ -134,8 +134,10 @@ def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, si
     u0, v0 = int(round(u)), int(round(v))
 
     def window(frac: float) -> tuple[slice, slice]:
+        # Clamped at both ends: a peak off the image gives an empty window, never a wrapped one.
         r = max(1, int(round(frac * size_m * f_px / z_belt)))
-        return slice(max(0, v0 - r), min(h, v0 + r + 1)), slice(max(0, u0 - r), min(w, u0 + r + 1))
+        return (slice(min(h, max(0, v0 - r)), max(0, min(h, v0 + r + 1))),
+                slice(min(w, max(0, u0 - r)), max(0, min(w, u0 + r + 1))))
 
     mid = depth_mm[window(0.25)].astype(np.float64) / 1000.0
     mid = mid[mid > 0]
@@ -144,6 +146,8 @@ def top_face_depth(rgb: np.ndarray, depth_mm: np.ndarray, u: float, v: float, si
         return float(np.median(on_belt))
     rows, cols = window(0.45)
     face = depth_mm[rows, cols].astype(np.float64) / 1000.0
+    if not face.size:
+        return None  # the face lies off the image
     hsv = cv2.cvtColor(np.ascontiguousarray(rgb[rows, cols]), cv2.COLOR_RGB2HSV)
     coloured = face[(cv2.inRange(hsv, PART_HSV_LOW, PART_HSV_HIGH) > 0) & (face > 0)]
     ring = coloured[np.abs(coloured - z_belt) < ON_BELT_TOL_M]

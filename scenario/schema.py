@@ -270,8 +270,9 @@ class AgvConfig(Strict):
                                  description="IP size of an uplink video packet, bytes")
     dl_packet_bytes: int = Field(default=120, ge=40, le=9000,
                                  description="IP size of a downlink control packet, bytes")
-    delay_budget_ms: float | None = Field(default=150.0, gt=0, le=10000, description="packet "
-                                          "delay budget of both streams, ms: older packets are "
+    delay_budget_ms: float | None = Field(default=150.0, ge=0.001, le=10000, description="packet "
+                                          "delay budget of both streams, ms (whole microseconds "
+                                          "at least): older packets are "
                                           "discarded at the sender (default 150: 5QI 2's "
                                           "live video budget, TS 23.501 Table 5.7.4-1); none: none")
 
@@ -666,9 +667,25 @@ class Scenario(Strict):
             raise ValueError(
                 f"hall.inf_layout needs netsim.model = nr (the simple model has one cell), got "
                 f"{self.netsim.model}")
+        self._reuse_fits()
         if self.robot.control_period_us % self.physics_timestep_us:
             raise ValueError("robot.control_period_us must be a multiple of physics_timestep_us")
         return self
+
+    def _reuse_fits(self) -> None:
+        """With reuse 3 each gNB's cell has a third of the carrier: it must hold a PRB, and a
+        configured-grant occasion (with no occasion that fits, its UEs would send nothing)."""
+        layout, nr = self.hall.inf_layout, self.netsim.nr
+        if layout is None or layout.reuse == 1:
+            return
+        per_cell = nr.n_prb // layout.reuse
+        if per_cell < 1:
+            raise ValueError(f"netsim.nr.n_prb = {nr.n_prb} leaves no PRB per cell with "
+                             f"hall.inf_layout.reuse = {layout.reuse}: at least {layout.reuse} PRBs")
+        if nr.ul_access == "configured_grant" and nr.cg_prb > per_cell:
+            raise ValueError(f"netsim.nr.cg_prb = {nr.cg_prb} exceeds the {per_cell} PRBs of a cell "
+                             f"(netsim.nr.n_prb = {nr.n_prb} over hall.inf_layout.reuse = {layout.reuse}): "
+                             f"at most {per_cell}, or reuse 1")
 
     @model_validator(mode="after")
     def _agvs_in_hall(self) -> Scenario:

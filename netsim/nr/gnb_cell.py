@@ -83,6 +83,7 @@ class GnbCell(NrCell):
         for harq in (self._harq_ul, self._harq_dl):
             for tb in harq.drop(u):
                 entries += [e for e, _ in tb.segments]
+        ul.absent.add(u)
         ul.gnb_bytes[u] = 0
         ul.gnb_sr[u] = False
         ul.known.discard(u)
@@ -105,6 +106,7 @@ class GnbCell(NrCell):
         outcomes of those refused at once (a full buffer)."""
         if ue not in self._index:
             raise ValueError(f"attach: unknown UE {ue!r}")
+        self._ul.absent.discard(self._index[ue])
         return self._arrivals.enqueue_many(packets) if packets else []
 
     def move(self, u: int, ul_snr_fullband_db: float, dl_snr_db: float,

@@ -77,6 +77,7 @@ class Uplink:
         self.ue_grants = [0] * n  # new-transmission grants in the pipeline, per UE
         self.ue_grant_bytes = [0] * n
         self.sr_candidates: set[int] = set()  # UEs with a triggered BSR and no grant yet
+        self.absent: set[int] = set()  # UEs served by another cell now (moving radios): no occasions
         self.pipeline: dict[int, list[Grant]] = {}  # PUSCH slot -> grants
 
     def schedule(self, s: int, target: int) -> None:
@@ -143,7 +144,8 @@ class Uplink:
         cfg = self.config
         period = cfg.cg_period_slots
         fit = self.n_prb // cfg.cg_prb
-        due = [u for u in range(self.n_ue) if (slot + u) % period == 0]
+        absent = self.absent
+        due = [u for u in range(self.n_ue) if (slot + u) % period == 0 and u not in absent]
         if len(due) <= fit:
             return due
         k = (slot // period) * fit % len(due)

@@ -124,7 +124,11 @@ class PhysicsFederate(Federate):
 
     # ---- events -------------------------------------------------------------------------------
     def _spawn(self, cell: int, part: dict[str, float]) -> None:
-        self.world.spawn(cell, **part)
+        if self.world.spawn(cell, **part) is None and self.world.cells[cell].skipped_spawns == 1:
+            # Every part body of the cell is still in play (parts that never leave the belt or
+            # the platform): the part is not simulated; the run's summary says how many were not.
+            log.warning("%s: work cell %d has no free part body at %d us: a part is not spawned (the first; the summary counts them)",
+                        self.name, cell, self.now)
 
     def _frame(self, loop: int) -> None:
         sc = self.scenario
@@ -223,4 +227,5 @@ class PhysicsFederate(Federate):
         self.world.advance_to(end_us)
         self._record_tasks(self.world.finish())
         return {"tasks": self.tasks_ended, "placed": self.tasks_placed,
-                "frames_rendered": self.frames_sent}
+                "frames_rendered": self.frames_sent,
+                "parts_not_spawned": sum(c.skipped_spawns for c in self.world.cells)}

@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 
 from domain import work_cell as g
-from domain.codec import decode_frame, encode_frame, slot_after, split_packets
+from domain.codec import (
+    decode_depth_delta_zlib,
+    decode_frame,
+    encode_depth_delta_zlib,
+    encode_frame,
+    slot_after,
+    split_packets,
+)
 from domain.estimator import ClassicalEstimator, make_estimator
 from domain.pose_net import DEFAULT_MODEL, LearnedEstimator, top_face_depth
 from domain.sensor import (
@@ -55,6 +62,13 @@ def sensed(rendered: tuple) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     data = encode_frame(rgb_s, depth_s, cam.jpeg_quality, cam.depth_codec, cam.depth_decimation)
     rgb2, depth2 = decode_frame(data)
     return rgb2, depth2, truth
+
+
+def test_delta_depth_codec_keeps_the_whole_uint16_range_exact() -> None:
+    full = np.random.default_rng(2).integers(0, 65536, (50, 50)).astype(np.uint16)
+    for depth in (np.array([[0, 40000, 0], [0, 0, 65535]], np.uint16), full):
+        h, w = depth.shape
+        assert np.array_equal(decode_depth_delta_zlib(encode_depth_delta_zlib(depth), h, w), depth)
 
 
 def intrinsics() -> CameraIntrinsics:
@@ -171,6 +185,12 @@ def _part_under_cup(lift_m: float, size_m: float = 0.06) -> tuple[np.ndarray, np
     rgb[cover] = 150
     depth[cover] = round((face_m - 0.05) * 1000)
     return rgb, depth, face_m, k.f_px
+
+
+def test_top_face_depth_of_a_peak_off_the_image_is_none() -> None:
+    rgb, depth = np.zeros((360, 640, 3), np.uint8), np.full((360, 640), 1000, np.uint16)
+    for u, v in [(652.0, 180.0), (-12.0, 180.0), (320.0, 372.0), (320.0, -20.0)]:
+        assert top_face_depth(rgb, depth, u, v, 0.06, 325.0) is None, (u, v)
 
 
 def test_top_face_depth_is_the_part_not_the_cup_over_it() -> None:

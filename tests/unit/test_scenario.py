@@ -201,7 +201,7 @@ def test_no_agvs_unless_asked_and_handover_defaults() -> None:
      r"\(0\.\.120 x 0\.\.60 m\)"),
     ({"hall": {"inf_layout": {}}, "agvs": {"count": 2}, "netsim": {"model": "simple"}},
      "(scenario)", r"hall\.inf_layout needs netsim\.model = nr"),
-    ({"agvs": {"delay_budget_ms": 0}}, "agvs.delay_budget_ms", r"greater than 0"),
+    ({"agvs": {"delay_budget_ms": 0}}, "agvs.delay_budget_ms", r"greater than or equal to 0.001"),
     ({"agvs": {"waypoints_m": [[10, -1], [20, 10]]}}, "(scenario)",
      r"agvs\.waypoints_m\[0\] = \(10, -1\) m lies outside"),
     ({"agvs": {"speed_m_s": 2.5}}, "agvs.speed_m_s",
@@ -233,3 +233,23 @@ def test_a_run_id_in_use_exits_2_before_anything_runs(tmp_path: Path, capsys: py
     smoke = Path(__file__).parents[2] / "configs" / "scenarios" / "smoke.yaml"
     assert main(["run", str(smoke), "--results", str(tmp_path), "--run-id", "taken", "--quiet"]) == 2
     assert "--run-id taken" in capsys.readouterr().err and not (tmp_path / "taken" / "status.json").exists()
+
+
+@pytest.mark.parametrize("nr,match", [
+    ({"n_prb": 2, "cg_prb": 1}, r"n_prb = 2 leaves no PRB per cell with hall.inf_layout.reuse = 3"),
+    ({"n_prb": 20, "cg_prb": 8, "ul_access": "configured_grant"},
+     r"cg_prb = 8 exceeds the 6 PRBs of a cell .*reuse = 3\): at most 6"),
+])
+def test_a_reuse_3_cell_must_hold_a_prb_and_a_configured_grant(nr: dict, match: str) -> None:
+    hall = {"inf_layout": {"gnb_count": 4, "reuse": 3}}
+    with pytest.raises(ScenarioError, match=match):
+        parse_scenario({"loops": 2, "hall": hall, "netsim": {"model": "nr", "nr": nr}})
+    fits = {**nr, "cg_prb": 6} if "ul_access" in nr else {**nr, "n_prb": 3}
+    assert parse_scenario({"loops": 2, "hall": hall, "netsim": {"model": "nr", "nr": fits}}).loops == 2
+
+
+def test_an_agv_delay_budget_under_a_microsecond_is_refused() -> None:
+    hall = {"inf_layout": {"gnb_count": 2}}
+    with pytest.raises(ScenarioError, match=r"agvs.delay_budget_ms: .* greater than or equal to 0.001"):
+        parse_scenario({"loops": 2, "hall": hall, "netsim": {"model": "nr"},
+                        "agvs": {"count": 1, "delay_budget_ms": 0.0004}})

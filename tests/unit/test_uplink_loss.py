@@ -42,6 +42,18 @@ def test_a_gap_in_the_sequence_counts_as_lost_once_its_timeout_passes() -> None:
     assert mon.period(153_000 + 2 * LOST_AFTER_US)[1] == pytest.approx(loss)  # counted once
 
 
+def test_a_frame_shown_sent_by_a_gap_has_its_timeout_from_its_first_packet() -> None:
+    mon = UplinkMonitor()
+    mon.started(0, 1, 0)
+    mon.frame(0, -20_000, 10_000, 1)  # frame 0 expected from 10 ms: sent before frame 1
+    mon.started(0, 0, 200_000)  # it starts to arrive within the timeout ...
+    assert mon.close(10_000 + LOST_AFTER_US).lost == 0  # ... and has the timeout from then on
+    assert mon.close(200_000 + LOST_AFTER_US).lost == 1
+    never = UplinkMonitor()
+    never.frame(0, 0, 10_000, 1)
+    assert never.close(10_000 + LOST_AFTER_US).lost == 1  # never started: lost from the gap
+
+
 def test_frames_the_camera_dropped_for_its_pdp_take_no_number_and_count_nothing() -> None:
     mon = UplinkMonitor()
     # Captures 0-9, every third kept (PDP 1/3): the sent frames are numbered 0, 1, 2, 3.

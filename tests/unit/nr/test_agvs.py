@@ -163,3 +163,30 @@ def test_agv_streams_are_constant_rate_and_staggered() -> None:
     assert len({p.packet_id for p in total}) == len(total) and max(p.packet_id for p in total) < 0
     assert all(p.enqueue_us % SLOT_US == 0 for p in total)
     assert np.isclose(len([p for p in total if p.direction == "dl"]) / 2, 100, atol=1)
+
+
+def test_agvs_served_elsewhere_take_no_configured_grant_occasions() -> None:
+    """Configured grants, an occasion every slot for each UE over half the carrier: three AGVs
+    served by gNB 0 leave gNB 1's static UE every occasion of its own, as with no AGV at all."""
+    cfg = NrConfig(los_mode="los", shadowing_enabled=False, fading="none", ul_access="configured_grant",
+                   cg_period_slots=1, cg_prb=NrConfig().n_prb // 2)
+    layout = InfLayout.explicit("SL", *HALL, [(30.0, 30.0, 1.5), (70.0, 30.0, 1.5)])
+    ues = {"a": (28.0, 32.0, 1.5), "b": (72.0, 32.0, 1.5)}
+
+    def delivered_to_b(agvs: int) -> tuple[int, list[list[int]]]:
+        ids = [f"agv-{i}" for i in range(agvs)]
+        kw = ({"fleet": Fleet([AgvRoute([(20.0, 30.0), (25.0, 30.0)], 0.5, 0.0, 1.5) for _ in ids]),
+               "agv_traffic": AgvTraffic(ids, 0.1, 0.01, 1500, 120), "handover": HandoverParams()}
+              if agvs else {})
+        hall = MultiCell(cfg, layout, ues, seed=5, **kw)
+        assert all(hall.serving_gnb_index[i] == 0 for i in ids)
+        delivered = 0
+        for s in range(400):
+            hall.enqueue_many([Packet(6 * s + k, "b/video", "b", "ul", 1500, s * SLOT_US) for k in range(6)])
+            delivered += sum(o.packet.ue == "b" and o.deliver_us is not None for o in hall.run_slot(s * SLOT_US))
+        cell = hall.cell_of_gnb[1]
+        return delivered, [cell._ul._cg_occasions(s) for s in range(4)]
+
+    alone = delivered_to_b(0)
+    assert alone[1] == [[0]] * 4 and alone[0] > 2000
+    assert delivered_to_b(3) == alone
