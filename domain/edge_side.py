@@ -214,11 +214,11 @@ class Edges:
     its loop count is that Edge's over the whole scenario. ``plan.backhaul_us`` is the delay its
     federate adds to every uplink frame and downlink packet (0 at a per-gNB Edge)."""
 
-    def __init__(self, sc: Scenario, plan: EdgePlan, loops: Iterable[int]) -> None:
+    def __init__(self, sc: Scenario, plan: EdgePlan, loops: Iterable[int], miss_rate: float | None = None) -> None:
         self.plan = plan
         self.backhaul_us = plan.backhaul_us
         every = plan.groups()
-        limits = default_limits(sc.policy, sc)
+        limits = default_limits(sc.policy, sc, miss_rate)
         self.by_edge: dict[str, CoDesign] = {}
         self._of_loop: dict[int, CoDesign] = {}
         for name, members in plan.groups(loops).items():
@@ -309,13 +309,14 @@ def load_control(cfg: PolicyConfig) -> LoadControl | None:
                        cfg.guard_start_pdp)
 
 
-def default_limits(cfg: PolicyConfig, sc: Scenario | None = None) -> FloorLimits:
+def default_limits(cfg: PolicyConfig, sc: Scenario | None = None, miss_rate: float | None = None) -> FloorLimits:
     """What the safety floor protects in scenario ``sc`` (None: the schema's defaults): the
-    robot's estimate age limit, the estimator's measured miss rate, ``cfg.floor_risk`` and the
-    policy period."""
+    robot's estimate age limit, the estimator's measured ``miss_rate`` (None: the shipped frame
+    model's, measured for the default camera; ``frame_model.miss_rate_for`` gives a camera's),
+    ``cfg.floor_risk`` and the policy period."""
     robot, edge = (sc.robot, sc.edge) if sc is not None else (RobotConfig(), EdgeConfig())
-    return FloorLimits(robot.max_estimate_age_ms / 1000, load_frame_model().miss_rate, cfg.floor_risk,
-                       edge.policy_period_ms / 1000)
+    miss = load_frame_model().miss_rate if miss_rate is None else miss_rate
+    return FloorLimits(robot.max_estimate_age_ms / 1000, miss, cfg.floor_risk, edge.policy_period_ms / 1000)
 
 
 def lower_layer_qos(loop: int, qos: Qos, now_us: int, cfg: PolicyConfig, slot_us: int) -> tuple[int, QosCtl]:

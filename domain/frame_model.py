@@ -87,6 +87,16 @@ def find_model(settings: dict[str, Any], *candidates: Path) -> Path:
                             f"one is for {shipped}); a run measures one on first use")
 
 
+def miss_rate_for(camera: Any, *candidates: Path) -> float:
+    """The estimator's miss rate behind a scenario's ``camera`` section: the frame model's
+    measured for its settings (``candidates`` first: a run's own), else the shipped model's (a
+    run of detailed loops only has none measured)."""
+    try:
+        return model_for(camera_settings(camera), *candidates).miss_rate
+    except FrameModelMissing:
+        return load_frame_model().miss_rate
+
+
 def model_for(settings: dict[str, Any], *candidates: Path) -> FrameModel:
     """The frame model measured for ``settings``, looked for in ``candidates`` first (see
     ``find_model``)."""

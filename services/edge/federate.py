@@ -13,6 +13,7 @@ from domain.codec import decode_frame, slot_after
 from domain.edge_side import Edges, downlink_packet, lower_layer_qos, update_tracks
 from domain.edges import load_plan
 from domain.estimator import Detection, make_estimator
+from domain.frame_model import RUN_FILE, miss_rate_for
 from domain.partitions import load_route
 from domain.policy import Qos
 from domain.tracker import Tracker
@@ -41,7 +42,10 @@ class EdgeFederate(Federate):
         self.trackers = {i: Tracker((sc.work_cell.belt_speed_m_s, 0.0, 0.0)) for i in self.loops}
         # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py); one
         # CPU serves them all.
-        self.edges = Edges(sc, load_plan(sc, self.results_dir), self.loops)
+        # The floor's miss rate is the abstract loops' (the frame model of this camera), so that
+        # an Edge serving both kinds bounds them alike.
+        self.edges = Edges(sc, load_plan(sc, self.results_dir), self.loops,
+                           miss_rate_for(sc.camera, self.results_dir / RUN_FILE))
         # An Edge serving abstract loops too shares its counts with the abstract loops' federate.
         self.edges.share(range(sc.detailed_loops, sc.loops))
         self.partial: dict[tuple[int, int], dict[str, Any]] = {}

@@ -76,7 +76,8 @@ class LoopsFederate(Federate):
         # The model measured for this camera, put into the run directory by the coordinator.
         self.frame_model = model_for(camera_settings(sc.camera), self.results_dir / RUN_FILE)
         # The Edge sides of these loops: one per gNB, or the central one (domain/edges.py).
-        self.edges = Edges(sc, load_plan(sc, self.results_dir), range(sc.detailed_loops, sc.loops))
+        self.edges = Edges(sc, load_plan(sc, self.results_dir), range(sc.detailed_loops, sc.loops),
+                           self.frame_model.miss_rate)
         # An Edge serving detailed loops too shares its counts with the Edge federate.
         self.edges.share(range(sc.detailed_loops))
         self.next_close_us: int | None = None  # when the shared Edges' counts are closed next

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 from coordinator.provision import provide_frame_model
+from domain.edge_side import Edges
+from domain.edges import load_plan
 from domain.frame_model import (
     PATH,
     RUN_FILE,
@@ -17,6 +19,7 @@ from domain.frame_model import (
     cache_path,
     camera_settings,
     find_model,
+    miss_rate_for,
     model_for,
 )
 from scenario.schema import parse_scenario
@@ -67,3 +70,18 @@ def test_a_run_gets_the_model_of_its_camera_in_its_directory(tmp_path: Path) -> 
     assert model_for(settings, path).frame_bytes.tolist() == [5, 6]
     assert provide_frame_model(parse_scenario({"loops": 1, "detailed_loops": 1}), tmp_path / "c.yaml",
                                tmp_path / "none") is None  # no abstract loop, no model
+
+
+def test_the_safety_floor_assumes_the_miss_rate_measured_for_the_runs_camera(tmp_path: Path) -> None:
+    sc = parse_scenario({"loops": 4, "detailed_loops": 1, "camera": {"jpeg_quality": 70},
+                         "policy": {"name": "heuristic"}})
+    path = measured_for(camera_settings(sc.camera), tmp_path / RUN_FILE, [30_000])
+    data = json.loads(path.read_text())
+    data["estimator_miss_rate"] = 0.2
+    path.write_text(json.dumps(data))
+    assert miss_rate_for(sc.camera, path) == 0.2
+    # With none measured for this camera (detailed loops only), the shipped model's.
+    assert miss_rate_for(sc.camera) == json.loads(PATH.read_text())["estimator_miss_rate"]
+    edges = Edges(sc, load_plan(sc, tmp_path), range(1, 4), miss_rate_for(sc.camera, path))
+    limits = edges[1].limits
+    assert limits is not None and limits.miss_rate == 0.2
