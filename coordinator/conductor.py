@@ -185,6 +185,8 @@ class Conductor:
             if self.on_progress and now - last_progress >= self.progress_every_s:
                 last_progress = now
                 self.on_progress(Progress(min(t_end, self.end_us), self.end_us, self.windows, now - wall0))
+        # Every window is done, or nothing would happen in those left: the run has reached its end.
+        self.t_us = max(self.t_us, self.end_us)
         if self.on_progress:
             self.on_progress(Progress(self.end_us, self.end_us, self.windows, time.monotonic() - wall0))
         return ConductorResult(self.windows, self.t_us, self._trace.hexdigest())

@@ -292,8 +292,12 @@ def execute_run(
         status, reason = RunState.FAILED, ("streamed table parts did not come in whole: "
                                            + ", ".join(f"{name} ({why})" for name, why in unsettled.items()))
     kpis: dict[str, Any] = {}
-    # What the federates streamed, merged for completed and failed runs alike; with how far it got.
-    recorded = close_records(run_dir, sim_s)
+    # What the federates streamed, merged for completed and failed runs alike; with how far it
+    # got: a run that did not complete got as far as its records reach (a federate that died
+    # stopped recording at its last flush), and its KPIs are rates over that.
+    recorded = close_records(run_dir, sim_s if status == RunState.COMPLETED else None)
+    if status != RunState.COMPLETED and not recorded.get("error") and recorded["sim_time_reached_s"] > 0:
+        sim_s = min(recorded["sim_time_reached_s"], scenario.duration_s)
     if status == RunState.COMPLETED and (short := records_short(recorded, stopped)):
         status, reason = RunState.FAILED, f"records lost: {short}"
     try:
@@ -360,8 +364,11 @@ def close_records(run_dir: Path, sim_time_reached_s: float | None = None) -> dic
         return {"sim_time_reached_s": sim_time_reached_s or 0.0, "error": f"{type(exc).__name__}: {exc}"}
     recorded = recorded_summary(merged)
     if sim_time_reached_s is None:
-        reached = [info["upto_s"] for m in merged.values() for info in m["parts"].values()
-                   if info.get("upto_s") is not None]
+        # A part closed cleanly ends its federate's records; the run got as far as the parts
+        # left open reach (every part's, when all were closed).
+        parts = [info for m in merged.values() for info in m["parts"].values() if info.get("upto_s") is not None]
+        open_parts = [info for info in parts if not info.get("complete")]
+        reached = [info["upto_s"] for info in (open_parts or parts)]
         sim_time_reached_s = min(reached) if reached else 0.0
     return {"sim_time_reached_s": sim_time_reached_s, **recorded}
 

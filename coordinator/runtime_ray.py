@@ -253,6 +253,8 @@ class _Session:
             if not ray.is_initialized():
                 kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                                           "logging_level": logging.WARNING}
+                if address:
+                    check_reachable(address)
                 try:
                     ray.init(address=address, **kwargs) if address else ray.init(**kwargs)
                 except Exception as exc:
@@ -560,6 +562,24 @@ class RayLauncher(Launcher):
         if self._session:
             self._session = False
             _SESSION.release(self.ray)
+
+
+# How long a cluster address given as host:port may take to answer before joining it is given up
+# (Ray itself retries for minutes, printing warnings, with nothing at the address).
+CONNECT_TIMEOUT_S = 5.0
+
+
+def check_reachable(address: str) -> None:
+    """RayRuntimeError unless the head at ``address`` (``host:port``; other forms, such as
+    ``auto`` or ``ray://``, are left to Ray) accepts a connection within CONNECT_TIMEOUT_S."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise RayRuntimeError(f"cannot reach the Ray cluster at {address} ({short_error(exc)}): start "
+                              f"its head (ray start --head) or give the address it prints") from None
 
 
 def short_error(exc: BaseException, limit: int = 300) -> str:

@@ -54,12 +54,15 @@ class LocalExecutor:
                 on_done(task, outcome)
 
         def forward_cancel() -> None:
+            # Until the pool ends: a point that passed its check just before the cancel starts
+            # its process after it, and is stopped too.
+            stopped: set[int] = set()
             while not stop.wait(0.2):
                 if cancel.is_set():
                     for proc in list(procs.values()):
-                        if proc.poll() is None:
+                        if proc.pid not in stopped and proc.poll() is None:
                             proc.terminate()  # the run cancels itself and stops its federates
-                    return
+                            stopped.add(proc.pid)
 
         watcher = threading.Thread(target=forward_cancel, daemon=True, name="sweep-cancel")
         watcher.start()

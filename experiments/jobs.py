@@ -29,6 +29,9 @@ from scenario.schema import Scenario
 
 log = logging.getLogger(__name__)
 
+# The state of a point of a completed sweep that never ran: its series had stopped before its load.
+PASSED_OVER = "passed_over"
+
 # Why a run a previous coordinator left unfinished failed.
 ORPHAN_REASON = "coordinator stopped during the run"
 
@@ -63,6 +66,7 @@ class JobService:
         self._threads: dict[str, threading.Thread] = {}
         self._sweeps: dict[str, Sweep] = {}  # running, for their progress
         self._points: dict[str, list[dict[str, Any]]] = {}
+        self._closing = False  # the service stops: its sweeps stop here and resume at the next start
         for run_id, results_dir in self.store.fail_active_runs(ORPHAN_REASON):
             try:  # what the run's federates streamed before the coordinator died is kept
                 salvage_run(Path(results_dir), ORPHAN_REASON)
@@ -158,6 +162,8 @@ class JobService:
             self.store.set_running(sid)
             sweep.run(self.make_executor(self.slots), cancel, self._sweep_event)
             state = sweep.dir.meta().get("state", RunState.COMPLETED)
+            if state == RunState.CANCELLED and self._closing:
+                return  # left running in the store: the next start resumes it
             self._end(sid, JobKind.SWEEP, state, "cancelled by the user" if state == RunState.CANCELLED else None)
         except Exception as exc:  # a broken sweep must not take the coordinator with it
             self._end(sid, JobKind.SWEEP, RunState.FAILED, f"coordinator error: {type(exc).__name__}: {exc}")
@@ -174,9 +180,16 @@ class JobService:
             row = self.store.get(sweep_id, JobKind.SWEEP)
             if row is None:
                 return []
-            spec = SweepSpec.model_validate(row["request"])
-            self._points[sweep_id] = [{"values": p.values, "seed": p.seed, "key": p.key}
-                                      for p in expand(spec, self.scenarios_dir, allow_paths=False)]
+            try:
+                spec = SweepSpec.model_validate(row["request"])
+                self._points[sweep_id] = [{"values": p.values, "seed": p.seed, "key": p.key}
+                                          for p in expand(spec, self.scenarios_dir, allow_paths=False)]
+            except (ValueError, OSError) as exc:
+                # A sweep of before a scenario was renamed or a check tightened: its grid no
+                # longer expands; it is described from its records.
+                log.warning("sweep %s: its spec no longer expands (%s); described from its records",
+                            sweep_id, exc)
+                return []
         return self._points[sweep_id]
 
     def describe(self, sweep_id: str) -> dict[str, Any] | None:
@@ -193,18 +206,25 @@ class JobService:
         known = set()
         for p in self.points(sweep_id):
             known.add(p["key"])
-            points.append(_point_state(p, records.get(p["key"]), in_flight))
+            point = _point_state(p, records.get(p["key"]), in_flight)
+            if row["state"] == RunState.COMPLETED and point["state"] == RunState.PENDING:
+                # A completed sweep ran every point but those whose series had stopped
+                # (``capacity.stop_after``).
+                point["state"] = PASSED_OVER
+            points.append(point)
         # Seeds added by repeat_until are not in the base grid: list them from the records.
         for key, rec in records.items():
             if key not in known:
                 points.append(_point_state({"values": rec["values"], "seed": rec["seed"], "key": key}, rec, {}))
         cap_path = sweep_dir / "capacity.json"
         done = sum(1 for p in points if p["state"] in ENDED)
+        passed_over = sum(1 for p in points if p["state"] == PASSED_OVER)
         return {
             "sweep_id": sweep_id, "name": row["name"], "state": row["state"], "reason": row["reason"],
             "created_s": row["created_s"], "started_s": row["started_s"], "finished_s": row["finished_s"],
             "spec": row["request"],
-            "progress": {"points_total": max(len(points), snap["total"] if snap else 0), "points_done": done,
+            "progress": {"points_total": max(len(points) - passed_over, snap["total"] if snap else 0),
+                         "points_done": done, "points_passed_over": passed_over,
                          "points_failed": sum(1 for p in points if p["state"] in ENDED and p["state"] != RunState.COMPLETED),
                          "eta_s": snap["eta_s"] if snap else None},
             "points": points,
@@ -212,7 +232,9 @@ class JobService:
         }
 
     def close(self) -> None:
-        """Cancel every job and wait for their threads (a minute at most)."""
+        """Stop every job and wait for their threads (a minute at most): runs are cancelled,
+        sweeps stop and are resumed by the next start."""
+        self._closing = True
         for ev in list(self._cancels.values()):
             ev.set()
         for thread in list(self._threads.values()):

@@ -85,9 +85,11 @@ def run_point(task: PointTask, procs: dict[str, subprocess.Popen[bytes]] | None 
 
 
 def read_outcome(run_dir: Path, code: int, log_path: Path) -> tuple[str, str | None, dict[str, Any]]:
-    """A finished run's state, reason and KPIs; a run process that wrote no KPIs failed."""
+    """A finished run's state, reason and KPIs; a run process that wrote no KPIs failed. Exit
+    code 2 is a run refused before it started (bad input, or a run directory that exists): the
+    KPIs there, if any, are not its own."""
     kpis_path = run_dir / "kpis.json"
-    if kpis_path.is_file():
+    if code != 2 and kpis_path.is_file():
         kpis = json.loads(kpis_path.read_text())
         return kpis.get("status", RunState.FAILED), kpis.get("reason"), kpis
     tail = log_path.read_text(errors="replace").strip().splitlines()[-5:] if log_path.exists() else []

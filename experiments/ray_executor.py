@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import os
 import shutil
 import tarfile
 import tempfile
@@ -20,15 +21,32 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
-from coordinator.runtime_ray import short_error
+from coordinator.runtime_ray import RayRuntimeError, check_reachable, short_error
 from experiments.point_runs import PointOutcome, PointTask, run_process
 
 log = logging.getLogger(__name__)
 
 
+POINT_DIR_PREFIX = "cosim5g-point-"
+
+
+def remove_stale_point_dirs() -> None:
+    """Remove the point directories whose worker is gone: a point cancelled by force (the
+    sweep's cancel) or lost with its worker never reaches its own clean-up."""
+    for path in Path(tempfile.gettempdir()).glob(f"{POINT_DIR_PREFIX}*"):
+        try:
+            os.kill(int((path / "owner").read_text()), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (OSError, ValueError):  # being made, or not this user's
+            continue
+
+
 def run_remote(config_yaml: str, run_id: str) -> dict[str, Any]:
     """On a Ray worker: run the point and return its state, KPIs and the packed run directory."""
-    tmp = Path(tempfile.mkdtemp(prefix="cosim5g-point-"))
+    remove_stale_point_dirs()
+    tmp = Path(tempfile.mkdtemp(prefix=POINT_DIR_PREFIX))
+    (tmp / "owner").write_text(str(os.getpid()))
     try:
         config = tmp / "config.yaml"
         config.write_text(config_yaml)
@@ -53,6 +71,8 @@ class RayExecutor:
             import ray  # noqa: F401
         except ImportError:
             raise ImportError("the ray executor needs Ray: pip install -e '.[ray]'") from None
+        if jobs is not None and jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {jobs}")
         self.address = address
         self.jobs = jobs
         self.cpus_per_point = cpus_per_point
@@ -66,6 +86,7 @@ class RayExecutor:
         started_here = not ray.is_initialized()
         if started_here:
             if self.address:
+                check_reachable(self.address)
                 ray.init(address=self.address, log_to_driver=False)
             else:
                 ray.init(include_dashboard=False, log_to_driver=False)
@@ -80,7 +101,11 @@ class RayExecutor:
         import ray
 
         with self.session():
-            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            cpus = float(ray.cluster_resources().get("CPU", 0.0))
+            if cpus < self.cpus_per_point:
+                # Its tasks would wait for ever for a CPU no node offers.
+                raise RayRuntimeError(f"the Ray cluster offers {cpus:g} CPUs, and a point needs "
+                                      f"{self.cpus_per_point:g}: add a node with CPUs (ray start --num-cpus N)")
             limit = self.jobs or max(1, int(cpus // self.cpus_per_point))
             remote = ray.remote(num_cpus=self.cpus_per_point, max_retries=0)(run_remote)
             queue = list(tasks)

@@ -68,10 +68,13 @@ class SweepDir:
         write_json(self.path / "sweep.json", meta)
 
     def append(self, record: dict[str, Any]) -> None:
-        """One finished point; flushed to disk before returning."""
+        """One finished point; flushed to disk before returning. A line cut short by a crash
+        (no newline at its end) is ended first, so that it does not swallow this one."""
         line = json.dumps(record, sort_keys=True, default=str)
-        with open(self.log_path, "a") as f:
-            f.write(line + "\n")
+        with open(self.log_path, "a+b") as f:
+            if f.tell() and (f.seek(-1, os.SEEK_END), f.read(1))[1] != b"\n":
+                f.write(b"\n")
+            f.write((line + "\n").encode())
             f.flush()
             os.fsync(f.fileno())
 

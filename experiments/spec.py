@@ -185,6 +185,18 @@ class SweepSpec(SpecModel):
         return self
 
     @model_validator(mode="after")
+    def _seeds_only_in_seeds(self) -> SweepSpec:
+        # Every point's seed is set last, from `seeds`: one set elsewhere would be replaced
+        # without a word, and two grid values of it would be one run.
+        where = ["set"] if "seed" in self.set else []
+        where += ["grid"] if "seed" in self.grid else []
+        where += [f"variants.{name}" for name, fields in self.variants.items() if "seed" in fields]
+        if where:
+            raise ValueError(f"seed in {', '.join(where)}: a sweep's seeds are its `seeds` (a count "
+                             f"n for 1..n, or a list), set on every point")
+        return self
+
+    @model_validator(mode="after")
     def _exclusions(self) -> SweepSpec:
         for i, entry in enumerate(self.exclude):
             if not entry:

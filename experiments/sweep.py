@@ -8,6 +8,7 @@ state: running the engine on it again (``--resume``) reruns only the points not 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import secrets
@@ -26,6 +27,7 @@ from experiments.points import Point, expand, make_point, write_point_config
 from experiments.records import SweepDir, flatten_kpis
 from experiments.report import rebuild
 from experiments.spec import SCENARIOS_DIR, SweepSpec, base_path, dump_spec
+from scenario.schema import SEED_LIMIT
 
 DEFAULT_ROOT = Path("results") / "sweeps"
 
@@ -147,9 +149,10 @@ class Sweep:
                 continue
             per_seed = have / len(tasks[g])
             need = math.ceil((rule.min_tasks - have) / per_seed) if per_seed > 0 else 1
-            last = max(used)
+            # The next seeds after the highest, then the lowest free ones (seeds end at SEED_LIMIT).
+            free = itertools.chain(range(max(used) + 1, SEED_LIMIT), range(SEED_LIMIT))
             extra += [make_point(self.spec, base, values[g], s)
-                      for s in range(last + 1, last + 1 + min(need, room))]
+                      for s in itertools.islice((s for s in free if s not in used), min(need, room))]
         return extra
 
     def _series_of(self, values: dict[str, Any]) -> str:
@@ -197,7 +200,11 @@ class Sweep:
         ``points``), until nothing is left or the sweep is cancelled."""
         prog = self.progress
         passed: list[Point] = []  # passed over: their series had stopped
-        while todo and not cancel.is_set():
+        # At least one round, also with nothing left to run: a sweep resumed after its base
+        # points still adds the seeds ``repeat_until`` asks for.
+        first = True
+        while (todo or first) and not cancel.is_set():
+            first = False
             for wave in self._waves(todo):
                 stopped = self._stopped_series(wave)
                 run = [p for p in wave if self._series_of(p.values) not in stopped]
@@ -256,8 +263,15 @@ class Sweep:
         todo = [p for p in points if p.key not in completed]
         # An executor that holds a cluster (Ray) keeps it up across the waves.
         session = getattr(executor, "session", contextlib.nullcontext)
-        with session():
-            self._run_points(todo, points, executor, on_start, on_done, cancel)
+        try:
+            with session():
+                self._run_points(todo, points, executor, on_start, on_done, cancel)
+        except Exception as exc:  # the sweep ends failed, saying why, never left "running"
+            meta.update(state=RunState.FAILED, reason=f"{type(exc).__name__}: {exc}",
+                        finished=datetime.now(UTC).isoformat(timespec="seconds"),
+                        wall_s=round(time.monotonic() - wall0, 1))
+            self.dir.write_meta(meta)
+            raise
         state = RunState.CANCELLED if cancel.is_set() else RunState.COMPLETED
         meta.update(state=state, finished=datetime.now(UTC).isoformat(timespec="seconds"),
                     wall_s=round(time.monotonic() - wall0, 1), points=len(points),

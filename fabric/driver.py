@@ -81,8 +81,9 @@ class Participant(Protocol):
     def culprit(self) -> str:
         """The name a failure in the current window is reported under."""
 
-    def stop(self, reason: str) -> list[Stopped]:
-        """Finish every hosted federate; their ``stopped`` records."""
+    def stop(self, reason: str, t_us: int | None = None) -> list[Stopped]:
+        """Finish every hosted federate, the run stopped at ``t_us`` (us; None: not known, the
+        coordinator is gone); their ``stopped`` records."""
 
     def close_records(self) -> None: ...
 
@@ -179,7 +180,7 @@ class WindowDriver:
                         pending = adv
                 elif kind == "stop":
                     stop = Stop.decode(payload)
-                    self.stop(stop.reason)
+                    self.stop(stop.reason, stop.t_us)
                     return 0
             except (MessageError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
                 what = "data message" if kind == "data" else f"{kind} message"
@@ -220,10 +221,11 @@ class WindowDriver:
         self.stop(f"coordinator lost: {reason}")
         return EXIT_ORPHANED
 
-    def stop(self, reason: str) -> None:
-        """Finish the participant once and publish its federates' ``stopped`` records."""
+    def stop(self, reason: str, t_us: int | None = None) -> None:
+        """Finish the participant once (the run stopped at ``t_us``, us; None: not known) and
+        publish its federates' ``stopped`` records."""
         if self._stopped:
             return
         self._stopped = True
-        for record in self.participant.stop(reason):
+        for record in self.participant.stop(reason, t_us):
             self.bus.publish(keys.stopped(self.run_id, record.federate), record.encode())

@@ -421,13 +421,17 @@ class Federate:
         """The error for a message of a kind this federate does not take."""
         return MessageRejected(f"{self.name}: unexpected message kind {msg.kind!r} from {msg.src}")
 
-    def stop(self, reason: str) -> list[Stopped]:
-        """Write the last records and summarise the run for the coordinator (``finish``)."""
+    def stop(self, reason: str, t_us: int | None = None) -> list[Stopped]:
+        """Write the last records and summarise the run for the coordinator (``finish``); the run
+        stopped at ``t_us`` (us; None: not known)."""
+        # The records reach the end of the last window this federate took part in, and the
+        # run's stop where that is later: the windows it sat out had nothing for it.
+        upto_us = self.window_end if t_us is None else max(self.window_end, t_us)
         try:
             self.collect_records()
             summary = self.finish(reason)
         finally:
-            self._close_records(collect=False, upto_us=self.window_end)
+            self._close_records(collect=False, upto_us=upto_us)
         summary["busy_wall_s"] = round(self._busy_s, 3)
         # The process's CPU; a group's members share one process (and thread), where the time
         # spent processing each member's events is the closest figure of its own.

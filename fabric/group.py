@@ -134,11 +134,11 @@ class FederateGroup:
                                  default=None),
             horizon_us=horizon)
 
-    def stop(self, reason: str) -> list[Stopped]:
+    def stop(self, reason: str, t_us: int | None = None) -> list[Stopped]:
         records = []
         for m in self.members.values():
             try:
-                records += m.stop(reason)
+                records += m.stop(reason, t_us)
             except Exception:
                 log.exception("%s: stopping %s failed", self.name, m.name)
         return records

@@ -188,6 +188,7 @@ class TableWriter:
         if self.closed:
             return
         meta = {"upto_us": str(self.clock() if upto_us is None else upto_us)}
+        wrote = bool(self._rows or self._ncols)
         if self._rows:
             unknown = set().union(*self._rows) - self._columns  # iterating a dict: its keys
             if unknown:
@@ -205,9 +206,12 @@ class TableWriter:
             self._cols, self._ncols = {}, 0
         if closing:
             meta["complete"] = "1"
+        if closing or not wrote:
+            # An empty batch carries the reach when no row does (a table with nothing new
+            # since the last flush still says how far it is complete).
             self._writer.write_batch(pa.RecordBatch.from_pylist([], schema=self.schema),
                                      custom_metadata=meta)
-        else:
+        if not closing:
             self._file.flush()  # a streamed part sends the batch now
 
     def _batch(self, rows: list[dict[str, Any]]) -> pa.RecordBatch:

@@ -220,6 +220,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         bar.start()
     try:
         cap = sweep.run(executor, cancel, on_event)
+    except RuntimeError as exc:  # the cluster cannot be joined or cannot hold a point, ...
+        print(f"\nsweep {sweep.sweep_id} failed: {exc}", file=sys.stderr)
+        return 1
     finally:
         stop.set()
         if bar is not None:

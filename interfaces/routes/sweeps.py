@@ -45,9 +45,11 @@ class SweepAccepted(BaseModel):
 
 
 class SweepProgress(BaseModel):
-    points_total: int
+    points_total: int = Field(description="points to run: the grid's, less those passed over, plus seeds added")
     points_done: int
     points_failed: int
+    points_passed_over: int = Field(default=0, description="points of a completed sweep that never ran: "
+                                    "their series had stopped (capacity.stop_after)")
     eta_s: float | None = Field(description="estimated wall time left while it runs, s")
 
 
@@ -55,7 +57,8 @@ class PointState(BaseModel):
     values: dict[str, Any] = Field(description="the point's grid values")
     seed: int
     key: str
-    state: str = Field(description="pending, running, completed, failed, timed_out or cancelled")
+    state: str = Field(description="pending, running, completed, failed, timed_out, cancelled or "
+                       "passed_over (a completed sweep's point whose series had stopped)")
     reason: str | None = None
     run_id: str | None = None
     sim_time_s: float | None = Field(default=None, description="while it runs: simulated time reached, s")

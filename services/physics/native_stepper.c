@@ -93,7 +93,8 @@ void cosim_stepper_catch_errors(error_fn *user_error) {
 const char *cosim_stepper_error(stepper *s) { return s->error; }
 
 static void wait_for(sem_t *s) {
-    while (sem_wait(s) != 0 && errno == EINTR) {
+    while (sem_wait(s) != 0) {
+        if (errno != EINTR) abort(); /* an invalid semaphore: going on would race on mjData */
     }
 }
 
@@ -101,12 +102,28 @@ stepper *cosim_stepper_new(step_fn step, const void *model, void *data, double *
                            long nq, long nv) {
     stepper *s = calloc(1, sizeof *s);
     if (s == NULL) return NULL;
-    if (sem_init(&s->go, 0, 0) != 0 || sem_init(&s->done, 0, 0) != 0) {
+    if (sem_init(&s->go, 0, 0) != 0) {
         free(s);
         return NULL;
     }
-    pthread_mutex_init(&s->lock, NULL);
-    pthread_cond_init(&s->progress, NULL);
+    if (sem_init(&s->done, 0, 0) != 0) {
+        sem_destroy(&s->go);
+        free(s);
+        return NULL;
+    }
+    if (pthread_mutex_init(&s->lock, NULL) != 0) {
+        sem_destroy(&s->go);
+        sem_destroy(&s->done);
+        free(s);
+        return NULL;
+    }
+    if (pthread_cond_init(&s->progress, NULL) != 0) {
+        pthread_mutex_destroy(&s->lock);
+        sem_destroy(&s->go);
+        sem_destroy(&s->done);
+        free(s);
+        return NULL;
+    }
     s->step = step;
     s->model = model;
     s->data = data;

@@ -188,7 +188,7 @@ class NativeStepAhead(_SplitStep):
         self._handle = lib.cosim_stepper_new(mj_step, world.model._address, world.data._address,
                                              qpos.ctypes.data, qvel.ctypes.data, qpos.size, qvel.size)
         if not self._handle:
-            raise MemoryError("native stepper: no memory for its semaphores")
+            raise MemoryError("native stepper: no memory for its semaphores and locks")
         self._done_flag = ctypes.c_int.from_address(lib.cosim_stepper_finished_flag(self._handle))
         self._handed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # alive while running
         # A ctypes call releases the GIL for as long as it runs: the thread's whole life here.

@@ -173,3 +173,126 @@ def test_a_store_of_an_older_coordinator_is_adopted(tmp_path: Path) -> None:
     store.close()
     tables = {r[0] for r in sqlite3.connect(tmp_path / "old.db").execute("SELECT name FROM sqlite_master")}
     assert "runs" not in tables and "sweeps" not in tables
+
+
+def fake_point(tasks: int, timeline: Timeline | None = None, hold_s: float = 0.0) -> Any:
+    """Stands in for a `cosim5g run` process: a completed run of ``tasks`` tasks."""
+
+    def point(task: PointTask, procs: Any = None) -> PointOutcome:
+        if timeline is not None:
+            timeline.add("start", task.point.label())
+        time.sleep(hold_s)
+        return PointOutcome(task.point.key, task.run_id, "completed", None, task.runs_dir / task.run_id, hold_s,
+                            {"tasks": tasks, "tasks_placed": tasks})
+
+    return point
+
+
+def test_a_sweep_stopped_with_the_service_is_resumed_by_the_next_start(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments.spec import parse_spec
+
+    timeline = Timeline()
+    monkeypatch.setattr(executors, "run_point", fake_point(1, timeline, hold_s=0.3))
+    scenarios = ROOT / "configs" / "scenarios"
+
+    def service() -> JobService:
+        return JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
+                          make_executor=lambda s: LocalExecutor(1, slots=s))
+
+    jobs = service()
+    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [2, 4, 6, 8]},
+                       "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
+    sweep_id, _ = jobs.submit_sweep(spec)
+    while not timeline.events:
+        time.sleep(0.02)
+    jobs.close()  # the service stops (SIGTERM) while the sweep runs
+    jobs = service()  # the next start
+    try:
+        deadline = time.monotonic() + 30
+        while jobs.queued() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        row = jobs.store.get(sweep_id, JobKind.SWEEP)
+        assert row["state"] == "completed" and row["reason"] is None
+        assert sorted(p["values"]["loops"] for p in jobs.describe(sweep_id)["points"]) == [2, 4, 6, 8]
+    finally:
+        jobs.close()
+
+
+def test_a_sweep_resumed_after_its_base_points_still_adds_the_seeds_it_needs(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments.spec import parse_spec
+    from experiments.sweep import Sweep
+
+    monkeypatch.setattr(executors, "run_point", fake_point(5))
+    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1, 2]},
+                       "repeat_until": {"min_tasks": 12, "max_seeds": 5},
+                       "set": {"duration_s": 5, "detailed_loops": 0}}, ROOT / "configs" / "scenarios")
+    sweep = Sweep.create(spec, tmp_path)
+    cancel = threading.Event()
+    sweep.run(LocalExecutor(1), cancel, lambda kind, data: cancel.set() if kind == "point_done"
+              and len(sweep.dir.records()) == 2 else None)  # cancelled once the base points are in
+    assert sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records()) == [(1, 1), (2, 1)]
+    Sweep(spec, sweep.dir.path).run(LocalExecutor(1))  # resumed
+    seeds = sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records())
+    assert seeds == [(1, 1), (1, 2), (1, 3), (2, 1), (2, 2), (2, 3)]
+
+
+def test_a_sweep_that_raises_is_recorded_failed_with_its_reason(tmp_path: Path) -> None:
+    from experiments.spec import parse_spec
+    from experiments.sweep import Sweep
+
+    class Broken(LocalExecutor):
+        def run(self, *args: Any, **kwargs: Any) -> None:
+            raise RuntimeError("no cluster here")
+
+    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1]}}, ROOT / "configs" / "scenarios")
+    sweep = Sweep.create(spec, tmp_path)
+    with pytest.raises(RuntimeError, match="no cluster here"):
+        sweep.run(Broken(1))
+    meta = sweep.dir.meta()
+    assert meta["state"] == "failed" and meta["reason"] == "RuntimeError: no cluster here"
+
+
+def test_points_a_completed_sweep_passed_over_are_said_so_and_not_counted(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments.spec import parse_spec
+
+    def point(task: PointTask, procs: Any = None) -> PointOutcome:  # every load from 2 on misses every task
+        placed = 5 if task.point.values["loops"] < 2 else 0
+        return PointOutcome(task.point.key, task.run_id, "completed", None, task.runs_dir / task.run_id, 0.0,
+                            {"tasks": 5, "tasks_placed": placed})
+
+    monkeypatch.setattr(executors, "run_point", point)
+    scenarios = ROOT / "configs" / "scenarios"
+    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
+                      make_executor=lambda s: LocalExecutor(1, slots=s))
+    try:
+        spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1, 2, 3, 4]},
+                           "capacity": {"x": "loops", "stop_after": 1},
+                           "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
+        sweep_id, _ = jobs.submit_sweep(spec)
+        deadline = time.monotonic() + 30
+        while jobs.queued() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        detail = jobs.describe(sweep_id)
+        assert detail is not None and detail["state"] == "completed"
+        assert [p["state"] for p in detail["points"]] == ["completed", "completed", "passed_over", "passed_over"]
+        assert detail["progress"] | {"eta_s": None} == {"points_total": 2, "points_done": 2, "points_failed": 0,
+                                                       "points_passed_over": 2, "eta_s": None}
+    finally:
+        jobs.close()
+
+
+def test_a_sweep_whose_spec_no_longer_expands_is_described_from_its_records(tmp_path: Path) -> None:
+    store = JobStore(tmp_path / "jobs.db")
+    store.add("old", JobKind.SWEEP, "old", {"name": "old", "base": "renamed_since", "grid": {"loops": [1]}},
+              tmp_path / "sweeps" / "old")
+    store.finish("old", "completed", None, None)
+    store.close()
+    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", ROOT / "configs" / "scenarios")
+    try:
+        detail = jobs.describe("old")
+        assert detail is not None and detail["points"] == [] and detail["state"] == "completed"
+    finally:
+        jobs.close()

@@ -3,7 +3,10 @@ cluster cannot hold, an address without the ray runtime."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -15,6 +18,7 @@ from coordinator.runtime_ray import (
     _what,
     bundle_cpus,
     check_placement,
+    check_reachable,
 )
 from interfaces.cli import build_parser
 from scenario.schema import load_scenario
@@ -86,3 +90,29 @@ def test_strict_strategies_are_checked_against_the_nodes() -> None:
         check_placement(asked, {"a": 4.0}, 4.0, "STRICT_SPREAD")
     with pytest.raises(RayRuntimeError, match="expected one of PACK"):
         check_placement(asked, {"a": 4.0}, 4.0, "CLOSE")
+
+
+def test_an_address_nobody_answers_at_is_refused_at_once() -> None:
+    with pytest.raises(RayRuntimeError, match=r"cannot reach the Ray cluster at 127.0.0.1:1 .*ray start --head"):
+        check_reachable("127.0.0.1:1")
+    check_reachable("auto")  # Ray's own forms are left to Ray
+
+
+def test_a_point_directory_of_a_worker_that_is_gone_is_removed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments.ray_executor import POINT_DIR_PREFIX, remove_stale_point_dirs
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead, alive = tmp_path / f"{POINT_DIR_PREFIX}a", tmp_path / f"{POINT_DIR_PREFIX}b"
+    for path, pid in ((dead, gone.stdout.strip()), (alive, str(os.getpid()))):
+        (path / "runs").mkdir(parents=True)
+        (path / "owner").write_text(pid)
+    remove_stale_point_dirs()
+    assert not dead.exists() and alive.exists()
+
+
+def test_a_ray_sweep_takes_at_least_one_point_at_a_time() -> None:
+    from experiments.executors import make_executor
+
+    with pytest.raises(ValueError, match="jobs must be >= 1, got -1"):
+        make_executor("ray", -1)

@@ -543,3 +543,20 @@ def test_seeds_added_until_enough_tasks_let_a_series_run_the_loads_it_had_passed
     assert ran.index((1, 8)) > ran.index((10, 6)) and {s for s, loops in ran if loops == 8} == set(range(1, 11))
     assert cap["series"]["policy.name=none"]["success>=98%"]["capacity"] == 8
     assert sweep.dir.meta()["passed_over"] == 0
+
+
+def test_a_line_cut_short_by_a_crash_does_not_swallow_the_next_record(tmp_path: Path) -> None:
+    sweep = SweepDir(tmp_path)
+    sweep.append({"key": "a", "status": "completed"})
+    sweep.log_path.write_bytes(sweep.log_path.read_bytes() + b'{"key": "b", "sta')  # died mid-write
+    sweep.append({"key": "c", "status": "completed"})
+    assert [r["key"] for r in sweep.records()] == ["a", "c"]
+    assert sweep.completed_keys() == {"a", "c"}
+
+
+@pytest.mark.parametrize("where", [{"set": {"seed": 42}}, {"grid": {"loops": [1], "seed": [7, 8]}},
+                                   {"variants": {"a": {"seed": 3}}}])
+def test_a_seed_outside_seeds_is_refused(where: dict[str, Any]) -> None:
+    spec = {"name": "s", "base": "baseline", "grid": {"loops": [1]}, **where}
+    with pytest.raises(SweepError, match=r"seed in .*: a sweep's seeds are its `seeds`"):
+        parse_spec(spec)

@@ -219,6 +219,52 @@ def test_a_federate_flushes_every_few_simulated_seconds(tmp_path: Path) -> None:
     assert stopped["netsim"].summary["peak_rss_mb"] > 0
 
 
+def test_a_flush_with_no_new_rows_still_says_how_far_the_part_is_complete(tmp_path: Path) -> None:
+    now = [0]
+    w = TableWriter(part_path(tmp_path, "packets", "netsim"), PACKETS, "packets", lambda: now[0])
+    w.append(packet(0))
+    w.flush()
+    now[0] = 7000
+    w.flush()  # nothing new since: the reach moves on all the same
+    rows, info = read_all(w.path)
+    assert len(rows) == 1 and info.upto_us == 7000 and not info.complete
+
+
+class Quiet(Federate):
+    """Records one row at 0 and has nothing to do after it: it sits the later windows out."""
+
+    def setup(self) -> None:
+        self.rows = self.table("packets")
+        self.schedule(0, lambda: self.rows.append(packet(0)))
+
+
+def test_a_federate_that_sat_the_last_windows_out_is_complete_up_to_the_runs_stop(tmp_path: Path) -> None:
+    from coordinator.conductor import Conductor
+
+    hub = InMemoryHub()
+    sc = parse_scenario({"duration_s": 1})
+    fed = Quiet(FederateContext("edge", "t1", sc, tmp_path), InMemoryBus(hub))
+    conductor = Conductor(InMemoryBus(hub), "t1", ["edge"], 1000, 50_000, window_timeout_s=10)
+    thread = threading.Thread(target=WindowDriver(fed).serve, daemon=True)
+    thread.start()
+    conductor.wait_ready(10)
+    conductor.run()
+    conductor.stop("completed", timeout_s=10)
+    thread.join(10)
+    rows, info = read_all(part_path(tmp_path, "packets", "edge"))
+    assert len(rows) == 1 and info.complete and info.upto_us == 50_000
+
+
+def test_a_salvaged_run_reaches_as_far_as_its_parts_left_open(tmp_path: Path) -> None:
+    from coordinator.run import close_records
+
+    for federate, upto_us, closed in (("edge", 1000, True), ("netsim", 26_000, False), ("loops", 27_000, False)):
+        w = TableWriter(part_path(tmp_path, "packets", federate), PACKETS, "packets", lambda u=upto_us: u)
+        w.append(packet(upto_us))
+        w.close() if closed else w.flush()
+    assert close_records(tmp_path)["sim_time_reached_s"] == pytest.approx(0.026)
+
+
 def test_a_run_whose_coordinator_died_is_closed_when_a_coordinator_starts(tmp_path: Path) -> None:
     """The API's store still says "running" and the run has only its streamed parts: the next
     coordinator marks it failed and merges the parts, kpis.json saying how far it got."""
