@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -22,6 +23,11 @@ class Executor(Protocol):
     def run(self, tasks: list[PointTask], on_start: Callable[[PointTask], None],
             on_done: Callable[[PointTask, PointOutcome], None], cancel: threading.Event) -> None:
         """Run every task (unless cancelled), calling ``on_done`` once per finished task."""
+
+
+# How long a cancelled point's run may take to stop its federates and write its records before
+# it is killed (a run stops its federates in a few seconds; its records are kept either way).
+CANCEL_GRACE_S = 60.0
 
 
 class LocalExecutor:
@@ -56,13 +62,18 @@ class LocalExecutor:
         def forward_cancel() -> None:
             # Until the pool ends: a point that passed its check just before the cancel starts
             # its process after it, and is stopped too.
-            stopped: set[int] = set()
+            stopped: dict[int, float] = {}  # pid -> when it was asked to stop
             while not stop.wait(0.2):
                 if cancel.is_set():
                     for proc in list(procs.values()):
-                        if proc.pid not in stopped and proc.poll() is None:
+                        if proc.poll() is not None:
+                            continue
+                        asked = stopped.get(proc.pid)
+                        if asked is None:
                             proc.terminate()  # the run cancels itself and stops its federates
-                            stopped.add(proc.pid)
+                            stopped[proc.pid] = time.monotonic()
+                        elif time.monotonic() - asked > CANCEL_GRACE_S:
+                            proc.kill()  # hung while it stopped: the run's federates die with it
 
         watcher = threading.Thread(target=forward_cancel, daemon=True, name="sweep-cancel")
         watcher.start()

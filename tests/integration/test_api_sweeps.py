@@ -96,7 +96,8 @@ def test_sweep_runs_through_the_api_to_completed_with_its_report(finished_sweep:
     server, s = finished_sweep
     sid = s["sweep_id"]
     assert s["state"] == "completed", s
-    assert s["progress"] == {"points_total": 2, "points_done": 2, "points_failed": 0, "eta_s": None}
+    assert s["progress"] == {"points_total": 2, "points_done": 2, "points_failed": 0, "points_passed_over": 0,
+                             "eta_s": None}
     assert [p["state"] for p in s["points"]] == ["completed", "completed"]
     assert all(p["kpis"]["ul_injected_mbps"] > 0 for p in s["points"])
     assert s["capacity"]["series"]["all"]["success>=100%"]["capacity"] in (0, 1, 2)

@@ -438,7 +438,7 @@ def test_a_grid_excluded_whole_or_too_large_before_exclusion_is_refused() -> Non
     grid = {"policy.name": ["none", "heuristic"], "loops": [2, 4]}
     [(_, msg)] = errors_of(spec(grid=grid, exclude=[{"policy.name": "none"}, {"policy.name": "heuristic"}]))
     assert "every grid combination is excluded" in msg
-    big = {"loops": {"start": 1, "stop": 1000, "step": 1}, "seed": {"start": 1, "stop": 1000, "step": 1},
+    big = {"loops": {"start": 1, "stop": 1000, "step": 1}, "duration_s": {"start": 1, "stop": 1000, "step": 1},
            "policy.name": ["none", "heuristic"]}
     errs = errors_of(spec(grid=big, exclude=[{"policy.name": "none"}]))
     assert "points" in errs[0][1] and "at most 100000" in errs[0][1]
