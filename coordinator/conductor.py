@@ -120,6 +120,13 @@ class Conductor:
             kind, key, payload = item
             if kind == "ready":
                 waiting.discard(Ready.decode(payload).federate)
+            elif kind == "done":  # a federate whose setup failed says which and why
+                try:
+                    d = Done.decode(payload)
+                except MessageError as exc:
+                    raise RunFailed(f"bad done report on {key}: {exc}") from None
+                if d.error:
+                    raise RunFailed(f"{d.federate}: {d.error}", federate=d.federate)
 
     def run(self) -> ConductorResult:
         """Conduct windows until the end time; raises RunFailed."""

@@ -154,7 +154,11 @@ class WindowDriver:
     def _serve(self) -> int:
         p, run = self.participant, self.run_id
         self.connect()
-        p.setup()
+        try:
+            p.setup()
+        except Exception as exc:  # reported under the failing member's name, with its error
+            log.error("setup failed:\n%s", traceback.format_exc())
+            return self._fail(None, f"setup failed: {type(exc).__name__}: {exc}")
         p.flush_outbox()
         self.bus.publish(keys.ready(run, p.name), Ready(federate=p.name, pid=os.getpid()).encode())
         pending: Advance | None = None
@@ -212,7 +216,10 @@ class WindowDriver:
         done = Done(federate=self.participant.culprit(), window=window, t_end_us=t_end, sent_to={},
                     next_event_us=None, earliest_sent_us=None, error=error)
         self.bus.publish(keys.done(self.run_id, self.participant.name), done.encode())
-        self.participant.close_records()
+        try:
+            self.participant.close_records()
+        except Exception:  # a setup that failed may have left tables half made
+            log.exception("closing the records failed")
         return EXIT_FAILED
 
     def _leave(self, reason: str) -> int:

@@ -46,6 +46,15 @@ class Breaker(Pinger):
         super().tick()
 
 
+class SetupBreaker(Pinger):
+    """A pinger whose setup fails for b."""
+
+    def setup(self) -> None:
+        if self.name == "b":
+            raise FileNotFoundError("no model for b")
+        super().setup()
+
+
 class Ahead(Pinger):
     """A pinger that records the bounds up to which the group lets it work ahead, each with how
     many messages it had accepted by then."""
@@ -157,6 +166,12 @@ def test_a_long_window_takes_in_the_base_window_of_the_horizon(tmp_path: Path) -
 def test_a_failing_member_is_named(tmp_path: Path) -> None:
     with pytest.raises(RunFailed, match="KeyError") as err:
         run(tmp_path, ["a", "b", "c"], kind=Breaker)
+    assert err.value.federate == "b"
+
+
+def test_a_member_whose_setup_fails_is_named_with_its_error(tmp_path: Path) -> None:
+    with pytest.raises(RunFailed, match=r"^b: setup failed: FileNotFoundError: no model for b") as err:
+        run(tmp_path, ["a", "b", "c"], kind=SetupBreaker)
     assert err.value.federate == "b"
 
 
