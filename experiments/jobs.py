@@ -45,7 +45,7 @@ class JobService:
 
     ``execute`` runs one run in this process (default ``execute_run``); ``make_executor(slots)``
     makes a sweep's executor (default: a local one whose points take slots). ``on_progress(run
-    id, sim s, real-time factor)``, ``on_admitted(kind)``, ``on_ended(kind, state)`` and
+    id, sim s, real-time factor)``, ``on_admitted(kind)``, ``on_ended(job_id, kind, state)`` and
     ``on_point_done(state)`` let the interface count what happens."""
 
     def __init__(self, db_path: Path, runs_root: Path, sweeps_root: Path, scenarios_dir: Path, *,
@@ -57,7 +57,7 @@ class JobService:
         self.slots = Slots(slots)
         self.make_executor = make_executor or (lambda s: LocalExecutor(s.size, slots=s))
         self.on_progress: Callable[[str, float, float], None] = lambda job_id, sim_s, rtf: None
-        self.on_ended: Callable[[JobKind, str], None] = lambda kind, state: None
+        self.on_ended: Callable[[str, JobKind, str], None] = lambda job_id, kind, state: None
         self.on_admitted: Callable[[JobKind], None] = lambda kind: None
         self.on_point_done: Callable[[str], None] = lambda state: None
         self.store = JobStore(db_path)
@@ -131,7 +131,7 @@ class JobService:
     def _end(self, job_id: str, kind: JobKind, state: str, reason: str | None,
              kpis: dict[str, Any] | None = None) -> None:
         self.store.finish(job_id, state, reason, kpis)
-        self.on_ended(kind, state)
+        self.on_ended(job_id, kind, state)
 
     def _run_job(self, run_id: str, sc: Scenario, cancel: threading.Event) -> None:
         try:

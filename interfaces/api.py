@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
+from contextlib import asynccontextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +36,9 @@ log = logging.getLogger(__name__)
 
 RUNS = Counter("cosim_coordinator_runs_total", "Runs finished, by final state", ["status"])
 ACTIVE_RUNS = Gauge("cosim_coordinator_runs_active", "Runs pending or running")
-SIM_TIME = Gauge("cosim_coordinator_run_sim_time_seconds", "Simulated time reached by the current run")
-RTF = Gauge("cosim_coordinator_run_real_time_factor", "Real-time factor of the current run")
+# Per run while it runs (several may at once), the series removed when it ends.
+SIM_TIME = Gauge("cosim_coordinator_run_sim_time_seconds", "Simulated time reached by a running run", ["run_id"])
+RTF = Gauge("cosim_coordinator_run_real_time_factor", "Real-time factor of a running run", ["run_id"])
 REFUSED = Counter("cosim_coordinator_requests_refused_total", "Requests refused by a limit or for the token",
                   ["reason"])
 SWEEPS_ACTIVE = Gauge("cosim_coordinator_sweeps_active", "Sweeps pending or running")
@@ -172,14 +173,17 @@ def count_refusal(reason: str) -> None:
 def count_jobs(jobs: JobService) -> None:
     """The coordinator's metrics follow the job service; every series exists from the start."""
 
-    def progress(_: str, sim_s: float, rtf: float) -> None:
-        SIM_TIME.set(sim_s)
-        RTF.set(rtf)
+    def progress(run_id: str, sim_s: float, rtf: float) -> None:
+        SIM_TIME.labels(run_id).set(sim_s)
+        RTF.labels(run_id).set(rtf)
         SLOTS_BUSY.set(jobs.slots.in_use())
 
-    def ended(kind: JobKind, state: str) -> None:
+    def ended(job_id: str, kind: JobKind, state: str) -> None:
         if kind == JobKind.RUN:
             RUNS.labels(state).inc()
+            for gauge in (SIM_TIME, RTF):
+                with suppress(KeyError):  # ended before any progress
+                    gauge.remove(job_id)
         count_sweeps(jobs)
 
     jobs.on_progress, jobs.on_ended = progress, ended
