@@ -121,12 +121,7 @@ class Conductor:
             if kind == "ready":
                 waiting.discard(Ready.decode(payload).federate)
             elif kind == "done":  # a federate whose setup failed says which and why
-                try:
-                    d = Done.decode(payload)
-                except MessageError as exc:
-                    raise RunFailed(f"bad done report on {key}: {exc}") from None
-                if d.error:
-                    raise RunFailed(f"{d.federate}: {d.error}", federate=d.federate)
+                self._done(key, payload, in_window=False)
 
     def run(self) -> ConductorResult:
         """Conduct windows until the end time; raises RunFailed."""
@@ -210,15 +205,23 @@ class Conductor:
             kind, key, payload = item
             if kind != "done":
                 continue
-            try:
-                d = Done.decode(payload)
-            except MessageError as exc:
-                raise RunFailed(f"bad done report on {key}: {exc}") from None
-            if d.error:
-                raise RunFailed(f"{d.federate} failed in window {d.window}: {d.error}", federate=d.federate)
+            d = self._done(key, payload)
             if d.window == window:
                 dones[d.federate] = d
         return dones
+
+    @staticmethod
+    def _done(key: str, payload: bytes, in_window: bool = True) -> Done:
+        """The done report ``payload`` (on ``key``); RunFailed naming the federate and its error
+        for one that failed (in a window, or ``in_window`` False: in its setup)."""
+        try:
+            d = Done.decode(payload)
+        except MessageError as exc:
+            raise RunFailed(f"bad done report on {key}: {exc}") from None
+        if d.error:
+            where = f" failed in window {d.window}" if in_window else ""
+            raise RunFailed(f"{d.federate}{where}: {d.error}", federate=d.federate)
+        return d
 
     def stop(self, reason: str, timeout_s: float = 30.0, gone: Iterable[str] = (),
              dead: Callable[[], Iterable[str]] | None = None) -> dict[str, Stopped]:
