@@ -293,11 +293,10 @@ def execute_run(
                                            + ", ".join(f"{name} ({why})" for name, why in unsettled.items()))
     kpis: dict[str, Any] = {}
     # What the federates streamed, merged for completed and failed runs alike; with how far it
-    # got: a run that did not complete got as far as its records reach (a federate that died
-    # stopped recording at its last flush), and its KPIs are rates over that.
+    # got: a run that did not complete, as far as every federate's records reach (a federate
+    # that died stopped recording at its last flush, the others went on to the failure). Its
+    # KPIs stay rates over the conductor's time, which the healthy federates' rows reach.
     recorded = close_records(run_dir, sim_s if status == RunState.COMPLETED else None)
-    if status != RunState.COMPLETED and not recorded.get("error") and recorded["sim_time_reached_s"] > 0:
-        sim_s = min(recorded["sim_time_reached_s"], scenario.duration_s)
     if status == RunState.COMPLETED and (short := records_short(recorded, stopped)):
         status, reason = RunState.FAILED, f"records lost: {short}"
     try:

@@ -87,14 +87,16 @@ def find_model(settings: dict[str, Any], *candidates: Path) -> Path:
                             f"one is for {shipped}); a run measures one on first use")
 
 
-def miss_rate_for(camera: Any, *candidates: Path) -> float:
-    """The estimator's miss rate behind a scenario's ``camera`` section: the frame model's
-    measured for its settings (``candidates`` first: a run's own), else the shipped model's (a
-    run of detailed loops only has none measured)."""
-    try:
-        return model_for(camera_settings(camera), *candidates).miss_rate
-    except FrameModelMissing:
-        return load_frame_model().miss_rate
+def miss_rate_for(camera: Any, run_file: Path) -> float:
+    """The estimator's miss rate behind a scenario's ``camera`` section: that of the run's own
+    frame model (``run_file``, measured for the camera: the abstract loops' federate reads the
+    same), else the shipped model's (a run of detailed loops only gets none), never one a cache
+    happens to hold: the same scenario must run the same on any host."""
+    if run_file.is_file():
+        model = load_frame_model(run_file)
+        if settings_match(model, camera_settings(camera)):
+            return model.miss_rate
+    return load_frame_model().miss_rate
 
 
 def model_for(settings: dict[str, Any], *candidates: Path) -> FrameModel:

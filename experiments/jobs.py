@@ -67,6 +67,7 @@ class JobService:
         self._sweeps: dict[str, Sweep] = {}  # running, for their progress
         self._points: dict[str, list[dict[str, Any]]] = {}
         self._closing = False  # the service stops: its sweeps stop here and resume at the next start
+        self._user_cancelled: set[str] = set()  # jobs the user cancelled (they never resume)
         for run_id, results_dir in self.store.fail_active_runs(ORPHAN_REASON):
             try:  # what the run's federates streamed before the coordinator died is kept
                 salvage_run(Path(results_dir), ORPHAN_REASON)
@@ -112,6 +113,7 @@ class JobService:
         ev = self._cancels.get(job_id)
         if ev is None:
             return False
+        self._user_cancelled.add(job_id)
         ev.set()
         return True
 
@@ -162,7 +164,7 @@ class JobService:
             self.store.set_running(sid)
             sweep.run(self.make_executor(self.slots), cancel, self._sweep_event)
             state = sweep.dir.meta().get("state", RunState.COMPLETED)
-            if state == RunState.CANCELLED and self._closing:
+            if state == RunState.CANCELLED and self._closing and sid not in self._user_cancelled:
                 return  # left running in the store: the next start resumes it
             self._end(sid, JobKind.SWEEP, state, "cancelled by the user" if state == RunState.CANCELLED else None)
         except Exception as exc:  # a broken sweep must not take the coordinator with it

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
-from coordinator.runtime_ray import RayRuntimeError, check_reachable, short_error
+from coordinator.runtime_ray import check_reachable, short_error
 from experiments.point_runs import PointOutcome, PointTask, run_process
 
 log = logging.getLogger(__name__)
@@ -103,9 +103,11 @@ class RayExecutor:
         with self.session():
             cpus = float(ray.cluster_resources().get("CPU", 0.0))
             if cpus < self.cpus_per_point:
-                # Its tasks would wait for ever for a CPU no node offers.
-                raise RayRuntimeError(f"the Ray cluster offers {cpus:g} CPUs, and a point needs "
-                                      f"{self.cpus_per_point:g}: add a node with CPUs (ray start --num-cpus N)")
+                # The points wait for a node with CPUs: one an autoscaler adds, or none ever.
+                log.warning("the Ray cluster offers %g CPUs and a point needs %g: the points wait for a "
+                            "node with CPUs (ray start --num-cpus N on one, or cancel the sweep)",
+                            cpus, self.cpus_per_point)
+            cpus = max(cpus, self.cpus_per_point)
             limit = self.jobs or max(1, int(cpus // self.cpus_per_point))
             remote = ray.remote(num_cpus=self.cpus_per_point, max_retries=0)(run_remote)
             queue = list(tasks)

@@ -176,11 +176,10 @@ class HallConfig(Strict):
 
     @field_validator("work_cell_pitch_m")
     @classmethod
-    def _cells_do_not_overlap(cls, pitch: tuple[float, float]) -> tuple[float, float]:
-        if min(pitch) < WORK_CELL_FOOTPRINT_M:
-            raise ValueError(f"work_cell_pitch_m = ({pitch[0]:g}, {pitch[1]:g}) m would overlap the "
-                             f"work cells: each must be at least {WORK_CELL_FOOTPRINT_M:g} m, the floor "
-                             f"a work cell takes (belt, arm and platform)")
+    def _pitch_positive(cls, pitch: tuple[float, float]) -> tuple[float, float]:
+        if min(pitch) <= 0:
+            raise ValueError(f"work_cell_pitch_m = ({pitch[0]:g}, {pitch[1]:g}) m: each must be positive "
+                             f"(at least {WORK_CELL_FOOTPRINT_M:g} m where two work cells stand along it)")
         return pitch
 
     @model_validator(mode="after")
@@ -748,13 +747,27 @@ class Scenario(Strict):
             f"hall.length_m / hall.width_m (and hall.work_cells_per_row, hall.gnb_position_m) to hold them")
 
     def _cells_apart(self) -> None:
-        """Around several gNBs (``work_cell_fill = gnbs``) one gNB's grid must not reach into its
-        neighbour's: no two work cells closer than the pitch allows."""
+        """No two work cells nearer than their footprint along both x and y; around several gNBs
+        (``work_cell_fill = gnbs``) one gNB's grid must not reach into its neighbour's either: no
+        two work cells closer than the pitch allows."""
         h = self.hall
-        if h.work_cell_fill != "gnbs":
-            return
         px, py = h.work_cell_pitch_m
         cells = h.work_cell_origins(self.loops)
+        foot = WORK_CELL_FOOTPRINT_M - 1e-6
+        by_x = sorted(range(len(cells)), key=lambda k: cells[k][0])
+        for a, i in enumerate(by_x):
+            for j in by_x[a + 1:]:
+                if cells[j][0] - cells[i][0] >= foot:
+                    break  # sorted by x: the rest are farther along it
+                if abs(cells[j][1] - cells[i][1]) < foot:
+                    raise ValueError(
+                        f"work cells {min(i, j)} and {max(i, j)} at ({cells[i][0]:g}, {cells[i][1]:g}) and "
+                        f"({cells[j][0]:g}, {cells[j][1]:g}) m overlap: work cells stand at least "
+                        f"{WORK_CELL_FOOTPRINT_M:g} m apart along x or y (the floor one takes: belt, arm "
+                        f"and platform); raise hall.work_cell_pitch_m = {(px, py)} or change "
+                        f"hall.work_cells_per_row = {h.work_cells_per_row}")
+        if h.work_cell_fill != "gnbs":
+            return
         gnbs = len(h.gnb_positions())
         for i, (xi, yi) in enumerate(cells):
             for j in range(i + 1, len(cells)):

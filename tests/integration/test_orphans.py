@@ -138,7 +138,8 @@ def test_a_federate_killed_mid_run_leaves_its_records_up_to_the_kill(tmp_path: P
     assert all(recorded["rows"][t] > 0 for t in ("jobs", "frames", "packets"))
     netsim = next(p for p in recorded["parts"] if p["table"] == "packets" and p["federate"] == "netsim")
     assert not netsim["complete"] and netsim["upto_s"] >= (kill_us - 2_500_000) / 1e6
-    # The run got as far as the dead federate's records: its KPIs are rates over that time.
-    assert recorded["sim_time_reached_s"] == kpis["sim_time_s"] == netsim["upto_s"]
+    # Every federate's records reach as far as the dead one's; the run itself got to the kill.
+    assert recorded["sim_time_reached_s"] == netsim["upto_s"]
+    assert kpis["sim_time_s"] >= kill_us / 1e6
     # The federates that were still alive closed their records when the run was stopped.
     assert all(p["complete"] for p in recorded["parts"] if p["federate"] != "netsim")

@@ -228,12 +228,13 @@ def test_a_sweep_resumed_after_its_base_points_still_adds_the_seeds_it_needs(tmp
     spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1, 2]},
                        "repeat_until": {"min_tasks": 12, "max_seeds": 5},
                        "set": {"duration_s": 5, "detailed_loops": 0}}, ROOT / "configs" / "scenarios")
-    sweep = Sweep.create(spec, tmp_path)
+    scenarios = ROOT / "configs" / "scenarios"
+    sweep = Sweep.create(spec, tmp_path, scenarios_dir=scenarios)
     cancel = threading.Event()
     sweep.run(LocalExecutor(1), cancel, lambda kind, data: cancel.set() if kind == "point_done"
               and len(sweep.dir.records()) == 2 else None)  # cancelled once the base points are in
     assert sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records()) == [(1, 1), (2, 1)]
-    Sweep(spec, sweep.dir.path).run(LocalExecutor(1))  # resumed
+    Sweep(spec, sweep.dir.path, scenarios).run(LocalExecutor(1))  # resumed
     seeds = sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records())
     assert seeds == [(1, 1), (1, 2), (1, 3), (2, 1), (2, 2), (2, 3)]
 
@@ -246,8 +247,9 @@ def test_a_sweep_that_raises_is_recorded_failed_with_its_reason(tmp_path: Path) 
         def run(self, *args: Any, **kwargs: Any) -> None:
             raise RuntimeError("no cluster here")
 
-    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1]}}, ROOT / "configs" / "scenarios")
-    sweep = Sweep.create(spec, tmp_path)
+    scenarios = ROOT / "configs" / "scenarios"
+    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1]}}, scenarios)
+    sweep = Sweep.create(spec, tmp_path, scenarios_dir=scenarios)
     with pytest.raises(RuntimeError, match="no cluster here"):
         sweep.run(Broken(1))
     meta = sweep.dir.meta()
@@ -294,5 +296,35 @@ def test_a_sweep_whose_spec_no_longer_expands_is_described_from_its_records(tmp_
     try:
         detail = jobs.describe("old")
         assert detail is not None and detail["points"] == [] and detail["state"] == "completed"
+    finally:
+        jobs.close()
+
+
+def test_a_sweep_the_user_cancelled_stays_cancelled_when_the_service_stops_meanwhile(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments.spec import parse_spec
+
+    timeline = Timeline()
+    monkeypatch.setattr(executors, "run_point", fake_point(1, timeline, hold_s=1.0))
+    scenarios = ROOT / "configs" / "scenarios"
+
+    def service() -> JobService:
+        return JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
+                          make_executor=lambda s: LocalExecutor(1, slots=s))
+
+    jobs = service()
+    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [2, 4, 6]},
+                       "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
+    sweep_id, _ = jobs.submit_sweep(spec)
+    while not timeline.events:
+        time.sleep(0.02)
+    assert jobs.cancel(sweep_id)
+    time.sleep(0.1)
+    jobs.close()  # the service stops while the cancelled sweep winds down
+    jobs = service()
+    try:
+        time.sleep(0.5)
+        row = jobs.store.get(sweep_id, JobKind.SWEEP)
+        assert row["state"] == "cancelled" and not jobs.queued()
     finally:
         jobs.close()

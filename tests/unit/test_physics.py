@@ -4,6 +4,7 @@ matches its DH table, the IK reaches the whole cell, and the controller picks re
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -394,9 +395,11 @@ def test_the_python_stepper_hands_back_its_steps_error_once(monkeypatch: pytest.
 
 
 @pytest.mark.parametrize("kind", ["python", "native"])
-def test_mujocos_error_in_a_step_is_raised_by_either_stepper(kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_mujocos_error_in_a_step_is_raised_by_either_stepper(kind: str, monkeypatch: pytest.MonkeyPatch,
+                                                              tmp_path: Path) -> None:
     """An arena too small for three parts' contacts: MuJoCo's error comes back as an exception
     where the steps are taken back, and the process goes on (MuJoCo alone would end it)."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo's warnings go to MUJOCO_LOG.TXT in the working directory
     build = hall._hall_xml
     monkeypatch.setattr(hall, "_hall_xml", lambda sc: re.sub(r'<size memory="\d+M"/>', '<size memory="8K"/>', build(sc)))
     world = World(parse_scenario({"loops": 1, "detailed_loops": 0}))

@@ -86,11 +86,20 @@ def test_an_override_nested_too_deep_is_refused_naming_it() -> None:
     assert exc.value.errors[0][0] == "loops" and "nested too deep" in exc.value.errors[0][1]
 
 
-@pytest.mark.parametrize("pitch", [[0.0, 0.0], [-8.0, 8.0], [8.0, 1.9]])
-def test_work_cells_closer_than_their_footprint_are_refused(pitch: list[float]) -> None:
-    with pytest.raises(ScenarioError, match=r"hall.work_cell_pitch_m: .* would overlap .* at least 2 m"):
+@pytest.mark.parametrize("pitch", [[0.0, 0.0], [-8.0, 8.0]])
+def test_a_pitch_that_is_not_positive_is_refused(pitch: list[float]) -> None:
+    with pytest.raises(ScenarioError, match=r"hall.work_cell_pitch_m: .* each must be positive"):
         parse_scenario({"loops": 4, "hall": {"work_cell_pitch_m": pitch}})
-    assert parse_scenario({"loops": 4, "hall": {"work_cell_pitch_m": [2.0, 2.0]}}).loops == 4
+
+
+@pytest.mark.parametrize("hall", [{"work_cell_pitch_m": [1.9, 8.0]},
+                                  {"work_cell_pitch_m": [8.0, 1.9], "work_cells_per_row": 2}])
+def test_work_cells_closer_than_their_footprint_are_refused(hall: dict) -> None:
+    with pytest.raises(ScenarioError, match=r"work cells 0 and [12] .* overlap: .* at least 2 m apart .* "
+                                            r"hall.work_cell_pitch_m"):
+        parse_scenario({"loops": 4, "hall": hall})
+    # Along an axis no two work cells share, any pitch: one row of four.
+    assert parse_scenario({"loops": 4, "hall": {"work_cell_pitch_m": [2.0, 1.0]}}).loops == 4
 
 
 def test_work_cells_around_the_gnbs_need_several_gnbs_and_may_not_overlap() -> None:
