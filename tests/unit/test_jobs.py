@@ -18,6 +18,8 @@ from experiments.job_store import JobKind, JobStore
 from experiments.jobs import JobService, TooMuchWork
 from experiments.point_runs import PointOutcome, PointTask
 from experiments.slots import POINT_PRIORITY, RUN_PRIORITY, Slots
+from experiments.spec import parse_spec
+from experiments.sweep import Sweep
 from scenario.schema import Scenario, load_scenario
 
 ROOT = Path(__file__).parents[2]
@@ -98,8 +100,6 @@ def test_a_run_submitted_during_a_sweep_goes_between_its_points(tmp_path: Path,
     jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", ROOT / "configs" / "scenarios",
                       slots=1, max_queued=4, execute=execute, make_executor=lambda s: LocalExecutor(1, slots=s))
     try:
-        from experiments.spec import parse_spec
-
         spec = parse_spec({"name": "s", "base": "baseline", "seeds": 1, "grid": {"loops": [2, 4, 6, 8]},
                            "set": {"duration_s": 5, "detailed_loops": 0}}, ROOT / "configs" / "scenarios",
                           allow_paths=False)
@@ -188,26 +188,31 @@ def fake_point(tasks: int, timeline: Timeline | None = None, hold_s: float = 0.0
     return point
 
 
+SCENARIOS = ROOT / "configs" / "scenarios"
+
+
+def service(tmp_path: Path) -> JobService:
+    """A coordinator's job service on ``tmp_path``, one slot; a second one takes over its store."""
+    return JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", SCENARIOS, slots=1,
+                      make_executor=lambda s: LocalExecutor(1, slots=s))
+
+
+def loads_sweep(loads: list[int], **more: Any) -> Any:
+    """A sweep of the baseline over ``loads`` loops, as a request gives it."""
+    return parse_spec({"name": "s", "base": "baseline", "grid": {"loops": loads},
+                       "set": {"duration_s": 5, "detailed_loops": 0}, **more}, SCENARIOS, allow_paths=False)
+
+
 def test_a_sweep_stopped_with_the_service_is_resumed_by_the_next_start(tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    from experiments.spec import parse_spec
-
     timeline = Timeline()
     monkeypatch.setattr(executors, "run_point", fake_point(1, timeline, hold_s=0.3))
-    scenarios = ROOT / "configs" / "scenarios"
-
-    def service() -> JobService:
-        return JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
-                          make_executor=lambda s: LocalExecutor(1, slots=s))
-
-    jobs = service()
-    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [2, 4, 6, 8]},
-                       "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
-    sweep_id, _ = jobs.submit_sweep(spec)
+    jobs = service(tmp_path)
+    sweep_id, _ = jobs.submit_sweep(loads_sweep([2, 4, 6, 8]))
     while not timeline.events:
         time.sleep(0.02)
     jobs.close()  # the service stops (SIGTERM) while the sweep runs
-    jobs = service()  # the next start
+    jobs = service(tmp_path)  # the next start
     try:
         deadline = time.monotonic() + 30
         while jobs.queued() and time.monotonic() < deadline:
@@ -221,35 +226,24 @@ def test_a_sweep_stopped_with_the_service_is_resumed_by_the_next_start(tmp_path:
 
 def test_a_sweep_resumed_after_its_base_points_still_adds_the_seeds_it_needs(tmp_path: Path,
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-    from experiments.spec import parse_spec
-    from experiments.sweep import Sweep
-
     monkeypatch.setattr(executors, "run_point", fake_point(5))
-    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1, 2]},
-                       "repeat_until": {"min_tasks": 12, "max_seeds": 5},
-                       "set": {"duration_s": 5, "detailed_loops": 0}}, ROOT / "configs" / "scenarios")
-    scenarios = ROOT / "configs" / "scenarios"
-    sweep = Sweep.create(spec, tmp_path, scenarios_dir=scenarios)
+    spec = loads_sweep([1, 2], repeat_until={"min_tasks": 12, "max_seeds": 5})
+    sweep = Sweep.create(spec, tmp_path, scenarios_dir=SCENARIOS)
     cancel = threading.Event()
     sweep.run(LocalExecutor(1), cancel, lambda kind, data: cancel.set() if kind == "point_done"
               and len(sweep.dir.records()) == 2 else None)  # cancelled once the base points are in
     assert sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records()) == [(1, 1), (2, 1)]
-    Sweep(spec, sweep.dir.path, scenarios).run(LocalExecutor(1))  # resumed
+    Sweep(spec, sweep.dir.path, SCENARIOS).run(LocalExecutor(1))  # resumed
     seeds = sorted((r["values"]["loops"], r["seed"]) for r in sweep.dir.records())
     assert seeds == [(1, 1), (1, 2), (1, 3), (2, 1), (2, 2), (2, 3)]
 
 
 def test_a_sweep_that_raises_is_recorded_failed_with_its_reason(tmp_path: Path) -> None:
-    from experiments.spec import parse_spec
-    from experiments.sweep import Sweep
-
     class Broken(LocalExecutor):
         def run(self, *args: Any, **kwargs: Any) -> None:
             raise RuntimeError("no cluster here")
 
-    scenarios = ROOT / "configs" / "scenarios"
-    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1]}}, scenarios)
-    sweep = Sweep.create(spec, tmp_path, scenarios_dir=scenarios)
+    sweep = Sweep.create(loads_sweep([1]), tmp_path, scenarios_dir=SCENARIOS)
     with pytest.raises(RuntimeError, match="no cluster here"):
         sweep.run(Broken(1))
     meta = sweep.dir.meta()
@@ -258,22 +252,15 @@ def test_a_sweep_that_raises_is_recorded_failed_with_its_reason(tmp_path: Path) 
 
 def test_points_a_completed_sweep_passed_over_are_said_so_and_not_counted(tmp_path: Path,
                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
-    from experiments.spec import parse_spec
-
     def point(task: PointTask, procs: Any = None) -> PointOutcome:  # every load from 2 on misses every task
         placed = 5 if task.point.values["loops"] < 2 else 0
         return PointOutcome(task.point.key, task.run_id, "completed", None, task.runs_dir / task.run_id, 0.0,
                             {"tasks": 5, "tasks_placed": placed})
 
     monkeypatch.setattr(executors, "run_point", point)
-    scenarios = ROOT / "configs" / "scenarios"
-    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
-                      make_executor=lambda s: LocalExecutor(1, slots=s))
+    jobs = service(tmp_path)
     try:
-        spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [1, 2, 3, 4]},
-                           "capacity": {"x": "loops", "stop_after": 1},
-                           "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
-        sweep_id, _ = jobs.submit_sweep(spec)
+        sweep_id, _ = jobs.submit_sweep(loads_sweep([1, 2, 3, 4], capacity={"x": "loops", "stop_after": 1}))
         deadline = time.monotonic() + 30
         while jobs.queued() and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -292,7 +279,7 @@ def test_a_sweep_whose_spec_no_longer_expands_is_described_from_its_records(tmp_
               tmp_path / "sweeps" / "old")
     store.finish("old", "completed", None, None)
     store.close()
-    jobs = JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", ROOT / "configs" / "scenarios")
+    jobs = service(tmp_path)
     try:
         detail = jobs.describe("old")
         assert detail is not None and detail["points"] == [] and detail["state"] == "completed"
@@ -302,26 +289,16 @@ def test_a_sweep_whose_spec_no_longer_expands_is_described_from_its_records(tmp_
 
 def test_a_sweep_the_user_cancelled_stays_cancelled_when_the_service_stops_meanwhile(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from experiments.spec import parse_spec
-
     timeline = Timeline()
     monkeypatch.setattr(executors, "run_point", fake_point(1, timeline, hold_s=1.0))
-    scenarios = ROOT / "configs" / "scenarios"
-
-    def service() -> JobService:
-        return JobService(tmp_path / "jobs.db", tmp_path / "runs", tmp_path / "sweeps", scenarios, slots=1,
-                          make_executor=lambda s: LocalExecutor(1, slots=s))
-
-    jobs = service()
-    spec = parse_spec({"name": "s", "base": "baseline", "grid": {"loops": [2, 4, 6]},
-                       "set": {"duration_s": 5, "detailed_loops": 0}}, scenarios, allow_paths=False)
-    sweep_id, _ = jobs.submit_sweep(spec)
+    jobs = service(tmp_path)
+    sweep_id, _ = jobs.submit_sweep(loads_sweep([2, 4, 6]))
     while not timeline.events:
         time.sleep(0.02)
     assert jobs.cancel(sweep_id)
     time.sleep(0.1)
     jobs.close()  # the service stops while the cancelled sweep winds down
-    jobs = service()
+    jobs = service(tmp_path)
     try:
         time.sleep(0.5)
         row = jobs.store.get(sweep_id, JobKind.SWEEP)
