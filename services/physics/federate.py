@@ -127,8 +127,8 @@ class PhysicsFederate(Federate):
         if self.world.spawn(cell, **part) is None and self.world.cells[cell].skipped_spawns == 1:
             # Every part body of the cell is still in play (parts that never leave the belt or
             # the platform): the part is not simulated; the run's summary says how many were not.
-            log.warning("%s: work cell %d has no free part body at %d us: a part is not spawned (the first; the summary counts them)",
-                        self.name, cell, self.now)
+            log.warning("%s: work cell %d has no free part body at %d us: a part is not spawned "
+                        "(the first; the summary counts them)", self.name, cell, self.now)
 
     def _frame(self, loop: int) -> None:
         sc = self.scenario
