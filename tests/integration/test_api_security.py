@@ -397,7 +397,7 @@ def test_a_huge_or_unbounded_grid_is_refused_before_it_is_expanded(tmp_path: Pat
         t0 = time.monotonic()
         # 10^6 points answered 422 only after every combination was validated (minutes) before.
         spec = {**base, "grid": {"loops": {"start": 1, "stop": 1000, "step": 1},
-                                 "seed": {"start": 1, "stop": 1000, "step": 1}}}
+                                 "duration_s": {"start": 1, "stop": 1000, "step": 1}}}
         r = c.post("/sweeps", json={"spec": spec}, headers=AUTH)
         assert r.status_code == 422 and "1000000 points" in r.json()["detail"][0]["message"], r.text
         # 10^9 values on one axis exhausted memory before anything was checked.
