@@ -66,11 +66,9 @@ class ArmKinematics:
         """``tcp_position`` of each row of ``qs`` (n x nq, rad): n x 3 (m), the same to the bit,
         with one matrix product for all."""
         x = np.empty((len(qs), 3))
-        data, site = self.data, self.site
         for i, q in enumerate(qs):
-            data.qpos[:] = q
-            mujoco.mj_kinematics(self.model, data)
-            x[i] = data.site_xpos[site]
+            self._kin(q)
+            x[i] = self.data.site_xpos[self.site]
         # A stack of matrix-vector products: the bits of ``base_r @ v`` for each row.
         return (self.base_r @ x[:, :, None])[:, :, 0] + self.base_p
 

@@ -200,7 +200,7 @@ class LearnedPolicy(Policy):
 
     def decide_many(self, states: list[LoopState]) -> list[Qos]:
         # One inference for all: the network's rows are the same to the bit as one at a time
-        # (tests/unit/test_policy.py), and the call's overhead is most of a small network's cost.
+        # (tests/unit/test_policy_learning.py), and the call's overhead is most of a small network's cost.
         if not states:
             return []
         x = np.stack([F.features(state) for state in states])
