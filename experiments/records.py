@@ -1,11 +1,13 @@
 """The sweep directory and its records (docs/architecture.md sec. 9, "Sweeps").
 
 A point is appended to ``points.jsonl`` only once its run has ended, so a sweep killed at any
-moment loses at most the points in flight; later lines for the same key win.
+moment loses at most the points in flight; later lines for the same key win. One process at a
+time runs a sweep directory (``SweepDir.hold``), so no point runs twice.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 from pathlib import Path
@@ -19,6 +21,11 @@ from fabric.tables import write_json, write_table
 
 # Bulky or per-loop KPI entries that stay in the run's kpis.json (per-loop ones are in loops.parquet).
 SKIPPED_KPIS = ("federates", "log_tail", "camera_bitrate_mbps", "windows_trace", "results_dir")
+LOCK_FILE = "run.lock"
+
+
+class SweepBusy(RuntimeError):
+    """Another runner (a process, or another thread of this one) holds the sweep directory."""
 
 
 def flatten_kpis(kpis: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -43,6 +50,30 @@ class SweepDir:
         self.runs = path / "runs"
         self.configs = path / "configs"
         self.progress = path / "progress"
+        self._lock_fd: int | None = None
+
+    def hold(self) -> None:
+        """Take the directory for this runner until ``release`` or the process ends (the kernel
+        drops the lock of a dead process); raises ``SweepBusy``, naming the holder's pid, when
+        another runner has it. Holding it twice is a no-op."""
+        if self._lock_fd is not None:
+            return
+        fd = os.open(self.path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise SweepBusy(f"sweep directory {self.path} is being run by another runner (pid {holder}): "
+                            "wait for it to end or cancel it there, then resume") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
+
+    def release(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # closing the descriptor drops the lock
+            self._lock_fd = None
 
     @property
     def log_path(self) -> Path:

@@ -229,9 +229,18 @@ class Sweep:
     def run(self, executor: Executor, cancel: threading.Event | None = None,
             on_event: Callable[[str, dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Run the sweep to its end (or until cancelled); returns the capacity record."""
-        cancel = cancel or threading.Event()
-        emit = on_event or (lambda kind, data: None)
-        meta = {**self.dir.meta(), "state": RunState.RUNNING, "executor": executor.name,
+        self.dir.hold()  # before anything is written: a busy directory is left as it is
+        try:
+            return self._run(executor, cancel or threading.Event(), on_event or (lambda kind, data: None))
+        finally:
+            self.dir.release()
+
+    def _run(self, executor: Executor, cancel: threading.Event,
+             emit: Callable[[str, dict[str, Any]], None]) -> dict[str, Any]:
+        # A resumed sweep's meta keeps its identity, not the end of its previous invocation.
+        last = {k: v for k, v in self.dir.meta().items()
+                if k not in ("finished", "reason", "wall_s", "points", "passed_over")}
+        meta = {**last, "state": RunState.RUNNING, "executor": executor.name,
                 "started": datetime.now(UTC).isoformat(timespec="seconds")}
         self.dir.write_meta(meta)
         wall0 = time.monotonic()

@@ -182,6 +182,7 @@ def _sweep_progress(sweep: Any, jobs: int, stream: Any, stop: threading.Event) -
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from experiments.executors import make_executor
+    from experiments.records import SweepBusy
     from experiments.report import load_sweep_spec
     from experiments.spec import SweepError, dump_spec, load_spec
     from experiments.sweep import Sweep
@@ -191,6 +192,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             sweep_dir = Path(args.resume)
             spec = load_spec(args.file) if args.file else load_sweep_spec(sweep_dir)
             sweep = Sweep(spec, sweep_dir)
+            sweep.dir.hold()  # refused at once, and never over the spec, if another runner has it
             if args.file:  # the report reads the spec it was resumed with (a grid extended, ...)
                 sweep.dir.write_spec(dump_spec(spec))
         elif args.file:
@@ -202,7 +204,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     except SweepError as exc:
         print(f"{args.file}: invalid sweep spec\n{exc.format()}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, ValueError, ImportError) as exc:
+    except (FileNotFoundError, ValueError, ImportError, SweepBusy) as exc:
         print(str(exc), file=sys.stderr)
         return 2
     cancel = cancel_on_signals()

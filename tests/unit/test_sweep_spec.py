@@ -560,3 +560,74 @@ def test_a_seed_outside_seeds_is_refused(where: dict[str, Any]) -> None:
     spec = {"name": "s", "base": "baseline", "grid": {"loops": [1]}, **where}
     with pytest.raises(SweepError, match=r"seed in .*: a sweep's seeds are its `seeds`"):
         parse_spec(spec)
+
+
+def test_a_sweep_directory_another_process_runs_is_refused_and_left_as_it_is(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import subprocess
+    import sys
+
+    from experiments.records import SweepBusy
+    from experiments.sweep import Sweep
+
+    class NoRun:
+        name = "none"
+
+        def run(self, tasks: Any, on_start: Any, on_done: Any, cancel: Any) -> None:
+            raise AssertionError("a busy sweep must run no point")
+
+    sweep = Sweep.create(parse_spec(spec(grid={"loops": [2]}), SCENARIOS), tmp_path, scenarios_dir=SCENARIOS)
+    meta, spec_text = sweep.dir.meta(), (sweep.dir.path / "sweep.yaml").read_text()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, pathlib; from experiments.records import SweepDir; "
+         f"d = SweepDir(pathlib.Path({str(sweep.dir.path)!r})); d.hold(); print('held', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        with pytest.raises(SweepBusy, match=rf"being run by another runner \(pid {holder.pid}\)"):
+            sweep.run(NoRun())  # type: ignore[arg-type]
+        assert sweep.dir.meta() == meta, "the holder's sweep.json is not touched"
+        other = tmp_path / "other.yaml"
+        other.write_text(spec_text.replace("loops:\n  - 2", "loops:\n  - 2\n  - 4"))
+        assert main(["sweep", "--resume", str(sweep.dir.path), str(other)]) == 2
+        assert f"pid {holder.pid}" in capsys.readouterr().err
+        assert (sweep.dir.path / "sweep.yaml").read_text() == spec_text, "nor is its spec"
+    finally:
+        holder.communicate("")  # the holder ends; the kernel drops its lock
+    ran: list[str] = []
+
+    class OneRun:
+        name = "one"
+
+        def run(self, tasks: Any, on_start: Any, on_done: Any, cancel: Any) -> None:
+            from experiments.point_runs import PointOutcome
+            for t in tasks:
+                ran.append(t.run_id)
+                on_done(t, PointOutcome(t.point.key, t.run_id, "completed", None, t.runs_dir / t.run_id, 0.1,
+                                        {"tasks": 1, "tasks_placed": 1}))
+
+    sweep.run(OneRun())  # type: ignore[arg-type]
+    assert len(ran) == 1 and sweep.dir.meta()["state"] == "completed"
+    first_end = sweep.dir.meta()["finished"]
+    sweep.dir.hold()  # the runner's own hold is taken again by its run, and dropped at its end
+    sweep.run(OneRun())  # type: ignore[arg-type]
+    SweepDir(sweep.dir.path).hold()  # released: a new runner takes it
+    assert sweep.dir.meta()["finished"] >= first_end
+
+
+def test_a_resumed_sweep_does_not_show_its_previous_end_while_it_runs(tmp_path: Path) -> None:
+    from experiments.sweep import Sweep
+
+    seen: list[dict[str, Any]] = []
+    sweep = Sweep.create(parse_spec(spec(grid={"loops": [2]}), SCENARIOS), tmp_path, scenarios_dir=SCENARIOS)
+    sweep.dir.write_meta({**sweep.dir.meta(), "state": "cancelled", "finished": "2026-01-01T00:00:00+00:00",
+                          "reason": "cancelled by the user", "wall_s": 5.0})
+
+    class Watch:
+        name = "watch"
+
+        def run(self, tasks: Any, on_start: Any, on_done: Any, cancel: Any) -> None:
+            seen.append(sweep.dir.meta())
+
+    sweep.run(Watch())  # type: ignore[arg-type]
+    assert seen[0]["state"] == "running" and not {"finished", "reason", "wall_s"} & set(seen[0])
