@@ -191,7 +191,7 @@ def count_jobs(jobs: JobService) -> None:
     jobs.on_point_done = lambda state: SWEEP_POINTS.labels(state).inc()
     for state in (RunState.COMPLETED, RunState.FAILED, RunState.TIMED_OUT):
         SWEEP_POINTS.labels(state)
-    for reason in ("token", "body_size", "json_depth", "max_queued"):
+    for reason in ("token", "origin", "body_size", "json_depth", "max_queued"):
         REFUSED.labels(reason)
     count_sweeps(jobs)
 

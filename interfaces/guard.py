@@ -1,8 +1,9 @@
 """The API's front door: what every request passes before any route or parser sees it.
 
 In order, each refusal costing no more than reading the request's head: body over the limit
-(413), token (401), body read up to the limit (413) and nested deeper than ``MAX_JSON_DEPTH``
-(422); docs/docker.md, "Who may use the API".
+(413), token (401), a change asked with the cookie alone from another origin (403), body read up
+to the limit (413) and nested deeper than ``MAX_JSON_DEPTH`` (422); docs/docker.md, "Who may use
+the API".
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ Send = Callable[[Message], Awaitable[None]]
 App = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 COOKIE = "cosim5g_token"
+# Methods that read: the cookie alone may ask them from anywhere a browser sends it.
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 # Routes anyone may call: liveness only (the compose healthcheck and load balancers know no token).
 PUBLIC_PATHS = frozenset({"/healthz"})
 # A token in a query (``/login?token=...``): shown as *** in the access log.
@@ -56,10 +59,21 @@ class Guard:
                                      or int(declared) > self.max_body_bytes):
             await self._too_large(send)
             return
-        if scope["path"] not in PUBLIC_PATHS and not self._authorised(scope, headers):
-            self.on_refused("token")
-            await _answer(send, 401, self.refused, [(b"www-authenticate", b"Bearer")])
-            return
+        if scope["path"] not in PUBLIC_PATHS:
+            credential = self._credential(scope, headers)
+            if credential is None:
+                self.on_refused("token")
+                await _answer(send, 401, self.refused, [(b"www-authenticate", b"Bearer")])
+                return
+            if credential == "cookie" and scope["method"] not in SAFE_METHODS and not _same_origin(headers):
+                # SameSite=Strict does not tell this service from another port of the same host,
+                # whose page could otherwise start or cancel work with the user's cookie.
+                self.on_refused("origin")
+                await _answer(send, 403, f"a {scope['method']} authorised by the login cookie alone must come "
+                                         "from this service's own pages (its Origin header, "
+                                         f"{headers.get('origin', 'absent')!r}, is not {headers.get('host', '')!r}): "
+                                         "send the token as an 'Authorization: Bearer' header")
+                return
         body = await self._body(receive)
         if body is None:
             await self._too_large(send)
@@ -71,19 +85,20 @@ class Guard:
             return
         await self.app(scope, _replay(body, receive), send)
 
-    def _authorised(self, scope: Scope, headers: dict[str, str]) -> bool:
-        """Whether the bearer header, the cookie or (on /login only, which checks it again itself)
-        the query's token is the token: a stale cookie does not stand in the way of a login."""
+    def _credential(self, scope: Scope, headers: dict[str, str]) -> str | None:
+        """Which of the bearer header, the cookie or (on /login only, which checks it again
+        itself) the query's token is the token, the first that is; None if none is. A stale
+        cookie does not stand in the way of a login."""
         given = []
         scheme, _, credentials = headers.get("authorization", "").partition(" ")
         if scheme.lower() == "bearer" and credentials:
-            given.append(credentials.strip())
+            given.append(("bearer", credentials.strip()))
         if (cookie := _cookie(headers.get("cookie", ""), COOKIE)) is not None:
-            given.append(cookie)
+            given.append(("cookie", cookie))
         if scope["path"] == "/login" and (query := _query_value(
                 scope.get("query_string", b"").decode("latin-1"), "token")) is not None:
-            given.append(query)
-        return any(token_matches(g, self.token) for g in given)
+            given.append(("query", query))
+        return next((kind for kind, g in given if token_matches(g, self.token)), None)
 
     async def _body(self, receive: Receive) -> bytes | None:
         """The whole body, or None once it passes the limit (a chunked body declares no length)."""
@@ -120,6 +135,13 @@ def json_depth(body: bytes) -> int:
 
 def _headers(scope: Scope) -> dict[str, str]:
     return {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+
+
+def _same_origin(headers: dict[str, str]) -> bool:
+    """Whether the request's ``Origin`` (which a browser sends with every POST) is this service,
+    as the client addressed it (``Host``). No Origin is not a browser's request: refused too."""
+    origin, host = headers.get("origin"), headers.get("host")
+    return bool(origin and host) and origin in (f"http://{host}", f"https://{host}")
 
 
 def _cookie(header: str, name: str) -> str | None:

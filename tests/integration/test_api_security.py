@@ -594,3 +594,31 @@ def test_a_body_of_escapes_is_read_in_one_pass() -> None:
 def test_login_with_more_query_fields_than_read_is_refused_not_an_error(client: Client) -> None:
     flood = "&".join(["a=1"] * 65)
     assert client.get(f"/login?{flood}").status_code == 401
+
+
+def test_the_cookie_alone_changes_nothing_from_another_origin(tmp_path: Path) -> None:
+    app, _ = make_app(tmp_path)
+    with serving(app) as client:
+        assert client.get("/login", params={"token": TOKEN}).status_code == 303
+        assert client.get("/runs").status_code == 200, "the cookie reads from anywhere"
+        before = origin_refusals(client)
+        own = f"http://127.0.0.1:{client.port}"
+        for origin in (None, f"http://127.0.0.1:{client.port + 1}", "http://elsewhere.example", "null"):
+            headers = {} if origin is None else {"origin": origin}
+            for path, body in (("/runs", {"scenario": "baseline", "overrides": {"duration_s": 0.2}}),
+                               ("/runs/nosuchrun/cancel", None), ("/sweeps/nosuchsweep/cancel", None)):
+                r = client.post(path, json=body, headers=headers)
+                assert r.status_code == 403, (path, origin, r.status_code)
+                assert "Origin" in r.json()["detail"] and "Bearer" in r.json()["detail"]
+        # From the service's own pages (its Origin), or with the bearer header from anywhere, the
+        # request goes on to its route (a 404: no such run).
+        assert client.post("/runs/nosuchrun/cancel", headers={"origin": own}).status_code == 404
+        assert client.post("/runs/nosuchrun/cancel", headers={"origin": "http://elsewhere.example",
+                                                             **AUTH}).status_code == 404
+        assert origin_refusals(client) - before == 12
+
+
+def origin_refusals(client: Client) -> float:
+    found = re.search(r'requests_refused_total\{reason="origin"\} ([0-9.]+)', client.get("/metrics", headers=AUTH).text)
+    assert found is not None
+    return float(found[1])
