@@ -14,7 +14,10 @@ from collections import deque
 from pathlib import Path
 
 from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
+from fabric.settings import env_name
 from services.main import PARENT_PID_ENV
+
+METRICS_PORT_ENV = env_name("metrics_port")
 
 
 class ProcessLauncher(Launcher):
@@ -31,7 +34,9 @@ class ProcessLauncher(Launcher):
               run_dir: Path) -> None:
         log_dir = run_dir / "logs"
         log_dir.mkdir(parents=True, exist_ok=True)
-        env = dict(os.environ)
+        # Every federate of a run shares this host: one metrics port for all would fail all but
+        # the first (metrics on a port are the docker runtime's, a port per container).
+        env = {k: v for k, v in os.environ.items() if k != METRICS_PORT_ENV}
         env.setdefault("MUJOCO_GL", "egl")
         env["PYTHONUNBUFFERED"] = "1"
         env[PARENT_PID_ENV] = str(os.getpid())

@@ -37,8 +37,9 @@ RAY_EXTRA = "ray"  # pyproject.toml's optional dependency group that brings Ray
 # Ray counts fractional resources in steps of 1e-4; a request is rounded up to the next step.
 RAY_CPU_STEP = 1e-4
 STRATEGIES = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
-# The coordinator's settings a federate acts on; the API token and the coordinator's pid stay home.
-_NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV}
+# The coordinator's settings a federate acts on; the API token, the coordinator's pid and a metrics
+# port (which every federate of a node would try to bind) stay home.
+_NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV, env_name("metrics_port")}
 ACTOR_START_TIMEOUT_S = 120.0  # a Ray worker process started and the federate's child spawned
 # A folder of a node where an actor's federate writes when the node does not see the run
 # directory: ``<tmp>/cosim5g-run-<actor pid>-<random>``.

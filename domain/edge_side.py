@@ -50,7 +50,8 @@ class CoDesign:
     watches the uplink's frames (``monitor``) for the floor's margins and the load control."""
 
     def __init__(self, cfg: PolicyConfig, cell: WorkCellConfig | float, loops: int = 1,
-                 fps: float = 30.0, limits: FloorLimits | None = None) -> None:
+                 fps: float = 30.0, limits: FloorLimits | None = None, name: str = "edge") -> None:
+        self.name = name  # the Edge's, as its metrics are labelled
         self.policy = make_policy(cfg)
         self.controls = cfg.controls  # an ablation may apply only part of the policy's QoS
         self.object_period_s: float | None = None
@@ -135,10 +136,10 @@ class CoDesign:
             queueing_s, loss = self.monitor.period(now_us)
         if self.load is not None:
             self.load.update(now_us, queueing_s, loss, self.monitor.stalled)
-            metrics.PDP_FILL.set(self.load.fill)
-            metrics.PDP_CAP.set(self.load.cap)
-            metrics.LOOPS_SERVED.set(self.load.served)
-        metrics.QUEUEING_DELAY.set(queueing_s)
+            metrics.PDP_FILL.labels(self.name).set(self.load.fill)
+            metrics.PDP_CAP.labels(self.name).set(self.load.cap)
+            metrics.LOOPS_SERVED.labels(self.name).set(self.load.served)
+        metrics.QUEUEING_DELAY.labels(self.name).set(queueing_s)
         self._periods += 1
         for i, level in enumerate(self.levels()[:3]):
             self._levels[i] += level
@@ -222,7 +223,7 @@ class Edges:
         self.by_edge: dict[str, CoDesign] = {}
         self._of_loop: dict[int, CoDesign] = {}
         for name, members in plan.groups(loops).items():
-            codesign = CoDesign(sc.policy, sc.work_cell, len(every[name]), sc.camera.fps, limits)
+            codesign = CoDesign(sc.policy, sc.work_cell, len(every[name]), sc.camera.fps, limits, name)
             self.by_edge[name] = codesign
             self._of_loop.update(dict.fromkeys(members, codesign))
         self.window_us = sc.window_us

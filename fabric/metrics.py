@@ -1,18 +1,22 @@
 """Prometheus metrics of the federates (base units, ``cosim_`` prefix, ``_total`` counters).
 
 A federate serves them over HTTP when ``COSIM5G_METRICS_PORT`` is set (the docker runtime sets it
-for every container); otherwise they are only collected in-process.
+for every container when ``COSIM5G_FEDERATE_METRICS_PORT`` is given); otherwise they are only
+collected in-process.
 """
 
 from __future__ import annotations
 
+import logging
 from bisect import bisect_left
 from collections import Counter as Tally
 from typing import Any
 
 from prometheus_client import Counter, Gauge, Histogram, start_http_server
 
-from fabric.settings import settings
+from fabric.settings import env_name, settings
+
+log = logging.getLogger(__name__)
 
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
@@ -38,11 +42,14 @@ PRB_UTILISATION = Gauge("cosim_netsim_prb_utilisation",
                         "Share of the PRBs of the last simulated second that carried data", ["direction"])
 TASKS = Counter("cosim_physics_tasks_total", "Pick-and-place tasks ended, by outcome", ["outcome"])
 LOOP_PDP = Gauge("cosim_loop_pdp", "Packet delivery probability the co-design policy set for a loop", ["loop"])
+# Per Edge (its name in the run's edges.json): a series exists only where an Edge runs.
 QUEUEING_DELAY = Gauge("cosim_edge_queueing_delay_seconds",
-                       "Smoothed queueing delay of the frames the Edge receives (delay above each loop's smallest)")
-PDP_FILL = Gauge("cosim_edge_pdp_fill", "PDP every co-design loop may use while the radio cell has headroom")
-PDP_CAP = Gauge("cosim_edge_pdp_cap", "PDP no co-design loop may exceed (the congestion guard)")
-LOOPS_SERVED = Gauge("cosim_edge_loops_served", "Share of the Edge's loops the congestion guard serves (the others shed)")
+                       "Smoothed queueing delay of the frames the Edge receives (delay above each loop's smallest)",
+                       ["edge"])
+PDP_FILL = Gauge("cosim_edge_pdp_fill", "PDP every co-design loop may use while the radio cell has headroom", ["edge"])
+PDP_CAP = Gauge("cosim_edge_pdp_cap", "PDP no co-design loop may exceed (the congestion guard)", ["edge"])
+LOOPS_SERVED = Gauge("cosim_edge_loops_served", "Share of the Edge's loops the congestion guard serves (the others shed)",
+                     ["edge"])
 
 
 def observe_many(histogram: Any, value: float, count: int) -> None:
@@ -71,5 +78,9 @@ def serve_from_env() -> int | None:
     port = settings().metrics_port
     if port is None:
         return None
-    start_http_server(port)
+    try:
+        start_http_server(port)
+    except OSError as exc:  # metrics are for watching: a taken port must not end the run
+        log.warning("metrics not served: cannot listen on %s=%d: %s", env_name("metrics_port"), port, exc)
+        return None
     return port

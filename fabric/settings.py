@@ -45,7 +45,7 @@ class Settings(BaseSettings):
     cache_dir: Path | None = Field(default=None, description="cache of measured models (default "
                                    "~/.cache/cosim5g)")
     # A federate process (services.main, fabric.metrics), as its runtime starts it.
-    metrics_port: int | None = Field(default=None, ge=0, le=65535, description="serve Prometheus metrics on it")
+    metrics_port: int | None = Field(default=None, ge=1, le=65535, description="serve Prometheus metrics on it")
     parent_pid: int | None = Field(default=None, description="the coordinator's pid: the federate stops "
                                    "when that process is gone")
     profile_dir: Path | None = Field(default=None, description="write each federate's cProfile statistics here")

@@ -176,7 +176,6 @@ def count_jobs(jobs: JobService) -> None:
     def progress(run_id: str, sim_s: float, rtf: float) -> None:
         SIM_TIME.labels(run_id).set(sim_s)
         RTF.labels(run_id).set(rtf)
-        SLOTS_BUSY.set(jobs.slots.in_use())
 
     def ended(job_id: str, kind: JobKind, state: str) -> None:
         if kind == JobKind.RUN:
@@ -188,7 +187,13 @@ def count_jobs(jobs: JobService) -> None:
 
     jobs.on_progress, jobs.on_ended = progress, ended
     jobs.on_admitted = lambda kind: count_sweeps(jobs)
-    jobs.on_point_done = lambda state: SWEEP_POINTS.labels(state).inc()
+
+    def point_done(state: str) -> None:
+        SWEEP_POINTS.labels(state).inc()
+        count_sweeps(jobs)
+
+    jobs.on_point_done = point_done
+    SLOTS_BUSY.set_function(jobs.slots.in_use)  # read at each scrape: runs and sweep points alike
     for state in (RunState.COMPLETED, RunState.FAILED, RunState.TIMED_OUT):
         SWEEP_POINTS.labels(state)
     for reason in ("token", "origin", "body_size", "json_depth", "max_queued"):

@@ -50,6 +50,23 @@ def test_smoke_run_completes_with_both_loops_working(tmp_path: Path) -> None:
     assert not processes_with(kpis["run_id"])
 
 
+def test_a_metrics_port_set_for_the_coordinator_does_not_fail_its_process_federates(tmp_path: Path) -> None:
+    # Every federate of the process runtime shares the host: the port is the docker runtime's
+    # (a port per container); here it must not be handed to every federate, which would fail
+    # all but the first to bind it.
+    from coordinator.run import free_port
+
+    env = {**os.environ, "COSIM5G_METRICS_PORT": str(free_port())}
+    proc = subprocess.run(
+        [sys.executable, "-m", "interfaces.cli", "run", str(SMOKE), "--json", "--quiet", "--results",
+         str(tmp_path), "--set", "duration_s=0.5"], capture_output=True, text=True, timeout=600, cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    kpis = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert kpis["status"] == "completed"
+    logs = "".join(p.read_text() for p in (Path(kpis["results_dir"]) / "logs").glob("*.log"))
+    assert "metrics not served" not in logs
+
+
 def run_trace(tmp_path: Path, seed: int) -> str:
     sc = load_scenario(SMOKE, ["duration_s=3", f"seed={seed}", *MODEL_TIMING_SETS])
     result = execute_run(sc, tmp_path)

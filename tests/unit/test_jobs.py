@@ -305,3 +305,35 @@ def test_a_sweep_the_user_cancelled_stays_cancelled_when_the_service_stops_meanw
         assert row["state"] == "cancelled" and not jobs.queued()
     finally:
         jobs.close()
+
+
+def test_the_coordinators_gauges_follow_a_sweep_point_by_point(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from prometheus_client import REGISTRY
+
+    from interfaces.api import count_jobs
+
+    def gauge(name: str) -> float | None:
+        return REGISTRY.get_sample_value(f"cosim_coordinator_{name}")
+
+    seen: list[tuple[float | None, float | None]] = []
+
+    def point(task: PointTask, procs: Any = None) -> PointOutcome:
+        seen.append((gauge("slots_busy"), gauge("sweep_points_remaining")))
+        return PointOutcome(task.point.key, task.run_id, "completed", None, task.runs_dir / task.run_id, 0.0,
+                            {"tasks": 1, "tasks_placed": 1})
+
+    monkeypatch.setattr(executors, "run_point", point)
+    jobs = service(tmp_path)
+    count_jobs(jobs)
+    try:
+        sweep_id, _ = jobs.submit_sweep(loads_sweep([2, 4, 6]))
+        deadline = time.monotonic() + 30
+        while jobs.queued() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert jobs.store.get(sweep_id, JobKind.SWEEP)["state"] == "completed"
+        # A point holds the one slot while it runs; what is left falls as each point ends.
+        assert seen == [(1.0, 3.0), (1.0, 2.0), (1.0, 1.0)]
+        assert (gauge("slots_busy"), gauge("sweep_points_remaining")) == (0.0, 0.0)
+    finally:
+        jobs.close()

@@ -1,4 +1,5 @@
-"""Bulk histogram observations (``fabric.metrics``): the same series as one ``observe`` a value."""
+"""Bulk histogram observations (``fabric.metrics``): the same series as one ``observe`` a value;
+the Edge's gauges, a series per Edge."""
 
 from __future__ import annotations
 
@@ -29,3 +30,15 @@ def test_observe_many_and_observe_all_equal_repeated_observe() -> None:
     observe_all(every, [])
     assert samples(registry, "many") == samples(registry, "single")
     assert samples(registry, "every") == samples(registry, "single")
+
+
+def test_the_edge_gauges_have_a_series_per_edge_and_none_where_no_edge_runs() -> None:
+    from prometheus_client import REGISTRY
+
+    from domain.edge_side import CoDesign
+    from scenario.schema import PolicyConfig
+
+    names = ("cosim_edge_pdp_fill", "cosim_edge_pdp_cap", "cosim_edge_loops_served", "cosim_edge_queueing_delay_seconds")
+    assert all(REGISTRY.get_sample_value(n) is None for n in names), "no unlabelled series to plot as 0"
+    CoDesign(PolicyConfig(name="heuristic"), 0.3, name="edge-g7").period(100_000)
+    assert all(REGISTRY.get_sample_value(n, {"edge": "edge-g7"}) is not None for n in names)
