@@ -145,8 +145,9 @@ train-perception: install-train ## render the pose data set, train the Edge pose
 	$(BIN)/python tools/measure_frames.py
 
 # The full path trains one PPO policy per lambda (two at a time, one core each, about 15 min on
-# two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 runs every step
-# on a tiny budget into a temporary directory (CI, about a minute).
+# two cores), writes results/policy/pareto.md and ships the chosen one; QUICK=1 trains, exports,
+# checks and evaluates one policy on a tiny budget into a temporary directory (about a minute; no
+# lambda sweep, no hall runs, nothing shipped).
 train-policy: install-train ## co-design policy: PPO per lambda, Pareto table, runs in the overload hall, ship domain/models/policy.onnx (QUICK=1: 1-min check)
 	$(if $(QUICK),$(BIN)/python tools/train_policy.py --quick,nice -n 19 $(BIN)/python tools/policy_sweep.py --ship)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -189,6 +190,25 @@ class LearnedPolicy(Policy):
         self.input_name = self.session.get_inputs()[0].name
         self.pdp_levels = tuple(float(p) for p in self.info["pdp_levels"])
         self.budget_levels_ms = tuple(float(b) for b in self.info["budget_levels_ms"])
+        self._probe()
+
+    def _probe(self) -> None:
+        """One inference of two rows of features, so that a network that does not fit its card
+        (input width, a batch fixed at one, output width against the card's levels) is refused
+        here, naming the file, and not at the first policy period of a run."""
+        width = len(F.FEATURE_NAMES)
+        want = len(self.pdp_levels) + len(self.budget_levels_ms)
+        try:
+            out = self.session.run(None, {self.input_name: np.zeros((2, width), np.float32)})[0]
+        except Exception as exc:
+            shape = self.session.get_inputs()[0].shape
+            raise ValueError(f"learned policy model {self.path} does not take a batch of {width} features "
+                             f"(its input {self.input_name!r} has shape {shape}): {exc}; retrain it: "
+                             f"{TRAIN_COMMAND}") from None
+        if np.shape(out) != (2, want):
+            raise ValueError(f"learned policy model {self.path} gives {np.shape(out)[1:]} outputs a state where "
+                             f"its card {self.path.with_suffix('.json')} names {len(self.pdp_levels)} PDP and "
+                             f"{len(self.budget_levels_ms)} budget levels ({want}); retrain it: {TRAIN_COMMAND}")
 
     def logits(self, state: LoopState) -> np.ndarray:
         """The network's output for ``state``: PDP logits then budget logits."""
@@ -228,7 +248,7 @@ def check_family(info: dict[str, Any], path: Path, cell: Any) -> None:
         raise ValueError(f"learned policy model card {path.with_suffix('.json')} names no training "
                          f"family; retrain: {TRAIN_COMMAND}")
     for field in ("belt_speed_m_s", "object_period_s"):
-        lo, hi = family[field]
+        lo, hi = family[field]  # a pair of numbers, as load_model_card checked
         value = getattr(cell, field)
         if not lo <= value <= hi:
             raise ValueError(f"work_cell.{field} = {value} is outside the family the learned policy {path} "
@@ -247,17 +267,80 @@ def load_model_card(path: Path) -> dict[str, Any]:
     if not card.is_file():
         raise FileNotFoundError(f"learned policy model card {card} (beside {path}) not found; "
                                 f"retrain: {TRAIN_COMMAND}")
-    info = json.loads(card.read_text())
-    trained = info.get("feature_set", "v1")
-    if trained != F.FEATURE_SET or tuple(info.get("features", ())) != F.FEATURE_NAMES:
-        raise ValueError(f"learned policy {path} was trained on feature set {trained!r} "
-                         f"({', '.join(info.get('features', ())[-2:])}, ...), but domain/policy_features.py "
-                         f"computes set {F.FEATURE_SET!r} ({', '.join(F.FEATURE_NAMES[-2:])}, ...); "
-                         f"retrain it: {TRAIN_COMMAND}")
+
+    def bad(what: str) -> ValueError:
+        return ValueError(f"learned policy model card {card}: {what}; retrain: {TRAIN_COMMAND}")
+
+    try:
+        info = json.loads(card.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise bad(f"not JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise bad(f"a JSON object was expected, it holds a {type(info).__name__}")
+    if "features" not in info:
+        raise bad("lacks 'features' (the observation the model was trained on)")
+    # The cards of the first observation named no set: that set is "v1".
+    trained, names = info.get("feature_set", "v1"), info["features"]
+    if trained != F.FEATURE_SET:
+        raise ValueError(f"learned policy {path} was trained on feature set {trained!r}, but "
+                         f"domain/policy_features.py computes set {F.FEATURE_SET!r}; retrain it: {TRAIN_COMMAND}")
+    if not isinstance(names, list) or tuple(names) != F.FEATURE_NAMES:
+        given = names if isinstance(names, list) else []
+        i = next((i for i, (a, b) in enumerate(zip(given, F.FEATURE_NAMES, strict=False)) if a != b),
+                 min(len(given), len(F.FEATURE_NAMES)))
+        raise bad(f"its features differ from set {F.FEATURE_SET!r} of domain/policy_features.py from feature "
+                  f"{i} on ({given[i] if i < len(given) else 'none'!r} where the set has "
+                  f"{F.FEATURE_NAMES[i] if i < len(F.FEATURE_NAMES) else 'none'!r})")
     for key in ("pdp_levels", "budget_levels_ms"):
-        if not info.get(key):
-            raise ValueError(f"learned policy model card {card} lacks {key!r}; retrain: {TRAIN_COMMAND}")
+        levels = info.get(key)
+        if not isinstance(levels, list) or not levels or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in levels):
+            raise bad(f"{key!r} must be a non-empty list of positive numbers, it is {levels!r}")
+    if not all(v <= 1 for v in info["pdp_levels"]):
+        raise bad(f"'pdp_levels' must lie in (0, 1], they are {info['pdp_levels']!r}")
+    family = info.get("family")
+    if family is not None:
+        for field in ("belt_speed_m_s", "object_period_s"):
+            pair = family.get(field) if isinstance(family, dict) else None
+            if not (isinstance(pair, list) and len(pair) == 2 and all(
+                    isinstance(v, int | float) and not isinstance(v, bool) for v in pair) and pair[0] <= pair[1]):
+                raise bad(f"family.{field} must be a range [low, high], it is {pair!r}")
     return info
+
+
+def policy_errors(cfg: PolicyConfig, cell: Any) -> list[tuple[str, str]]:
+    """(field, message) of what keeps the policy ``cfg`` names from serving work cell ``cell``
+    (a WorkCellConfig), found as an Edge would find it when it builds the policy: a learned model
+    missing, corrupt, of another feature set, whose network does not fit its card, or trained on
+    a family that does not hold the cell. Checked before a run starts; empty if it can serve."""
+    if cfg.name != LearnedPolicy.name:
+        return []
+    path = Path(cfg.learned_model) if cfg.learned_model else DEFAULT_POLICY_MODEL
+    try:
+        info = _checked_model(str(path), *_stamp(path))
+    except (ValueError, OSError) as exc:
+        return [("policy.learned_model", str(exc))]
+    try:
+        check_family(info, path, cell)
+    except ValueError as exc:
+        return [("work_cell", str(exc))]
+    return []
+
+
+def _stamp(path: Path) -> tuple[float, int]:
+    """When the model and its card last changed: a model retrained in place is checked again."""
+    try:
+        return max(path.stat().st_mtime, path.with_suffix(".json").stat().st_mtime), path.stat().st_size
+    except OSError:
+        return 0.0, -1
+
+
+@lru_cache(maxsize=8)
+def _checked_model(path: str, mtime: float, size: int) -> dict[str, Any]:
+    """The card of the learned model at ``path``, once the model is built and probed (once per
+    version of the files: every point of a sweep checks the same model)."""
+    del mtime, size  # the cache key
+    return LearnedPolicy(PolicyConfig(name="learned", learned_model=path)).info
 
 
 POLICIES: dict[str, type[Policy]] = {

@@ -97,4 +97,5 @@ def features(state: LoopState) -> np.ndarray:
     out += [len(parts) / 2.0, float(lifted), frame_age, next_part_s(state) / period,
             state.belt_speed_m_s / SPEED_SCALE_M_S, period / PERIOD_SCALE_S,
             state.link.cell_queueing_s / DELAY_SCALE_S]
-    return np.array([_clip(x) if math.isfinite(x) else 0.0 for x in out], dtype=np.float32)
+    # An unknown value (NaN) reads as none; an infinite one is as far as the scale goes.
+    return np.array([0.0 if math.isnan(x) else _clip(x) for x in out], dtype=np.float32)

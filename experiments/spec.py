@@ -18,6 +18,7 @@ from typing import Any, get_args
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from domain.policy import policy_errors
 from experiments.summary import references, series_name
 from scenario.schema import (
     NAME_MAX,
@@ -547,7 +548,9 @@ def load_spec(path: str | Path, scenarios_dir: Path = SCENARIOS_DIR) -> SweepSpe
         data = yaml.safe_load(p.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
         raise SweepError([("file", f"{p} is not valid YAML: {exc}")]) from None
-    return parse_spec(data, scenarios_dir)
+    # Every point's policy as its Edges will build it: a learned model that cannot serve a cell
+    # is refused here, not once per point.
+    return parse_spec(data, scenarios_dir, check=lambda sc: policy_errors(sc.policy, sc.work_cell))
 
 
 def dump_spec(spec: SweepSpec) -> str:

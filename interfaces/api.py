@@ -20,6 +20,7 @@ from prometheus_client import Counter, Gauge
 
 from coordinator.run import RunResult, execute_run
 from coordinator.run_state import ACTIVE, RunState
+from domain.policy import policy_errors
 from experiments.executors import Executor
 from experiments.job_store import JobKind
 from experiments.jobs import JobService, TooMuchWork
@@ -143,7 +144,7 @@ def create_app(results_root: Path, db_path: Path, scenarios_dir: Path, sweeps_ro
     app.openapi = openapi_schema  # type: ignore[method-assign]
     app.include_router(site_router(jobs, token, refused, app.openapi, count_refusal))
     def within_limits(sc: Scenario) -> list[tuple[str, str]]:
-        return scenario_limit_errors(sc, limits)
+        return scenario_limit_errors(sc, limits) or policy_errors(sc.policy, sc.work_cell)
 
     app.include_router(runs_router(jobs, scenarios_dir, within_limits))
     app.include_router(sweeps_router(jobs, sweeps_dir, scenarios_dir, within_limits,

@@ -90,7 +90,13 @@ def _run_id(text: str) -> str:
 
 
 def _load(path: str, overrides: list[str]) -> Scenario:
-    return load_scenario(path, overrides)
+    """The scenario at ``path`` with ``overrides``, its policy checked as its Edges will build it."""
+    from domain.policy import policy_errors
+
+    sc = load_scenario(path, overrides)
+    if errors := policy_errors(sc.policy, sc.work_cell):
+        raise ScenarioError(errors)
+    return sc
 
 
 def cmd_validate(args: argparse.Namespace) -> int:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -61,6 +62,10 @@ def test_features_of_an_empty_belt_are_finite_and_bounded() -> None:
     x = F.features(s)
     assert np.all(np.isfinite(x)) and np.all(np.abs(x) <= F.OBS_LIMIT)
     assert x[F.FEATURE_NAMES.index("track0_present")] == 0.0
+    # A load past any scale is the scale's end, not an idle cell's 0; an unknown one reads as none.
+    delay = F.FEATURE_NAMES.index("queueing_delay")
+    assert F.features(LoopState(10**9, [], None, 0.3, link=LinkEstimate(cell_queueing_s=math.inf)))[delay] == F.OBS_LIMIT
+    assert F.features(LoopState(10**9, [], None, 0.3, link=LinkEstimate(cell_queueing_s=math.nan)))[delay] == 0.0
 
 
 def test_codesign_builds_the_state_from_the_cell_and_remembers_spawns() -> None:
@@ -148,13 +153,90 @@ def test_model_trained_on_other_features_is_refused(tmp_path: Path) -> None:
     card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
     card["features"] = card["features"][:-1]
     model.with_suffix(".json").write_text(json.dumps(card))
-    with pytest.raises(ValueError, match="feature set"):
+    with pytest.raises(ValueError, match=rf"features differ from set '{F.FEATURE_SET}' .* from feature "
+                                         rf"{len(F.FEATURE_NAMES) - 1} on \('none' where the set has "
+                                         rf"'{F.FEATURE_NAMES[-1]}'\)"):
         make_policy(PolicyConfig(name="learned", learned_model=str(model)))
     # A model of the previous observation (no feature_set in its card: "v1") names both sets.
     del card["feature_set"]
     model.with_suffix(".json").write_text(json.dumps(card))
     with pytest.raises(ValueError, match=f"'v1'.*'{F.FEATURE_SET}'"):
         make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+
+
+def doctored(tmp_path: Path, card_edit: dict[str, object] | None = None, onnx: bytes | None = None) -> Path:
+    """A copy of the shipped model in ``tmp_path``, its card's fields replaced by ``card_edit``
+    (or its text by a string) and its network by ``onnx``."""
+    model = tmp_path / "policy.onnx"
+    model.write_bytes(onnx if onnx is not None else DEFAULT_POLICY_MODEL.read_bytes())
+    card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
+    model.with_suffix(".json").write_text(json.dumps({**card, **(card_edit or {})}))
+    return model
+
+
+def linear_onnx(width: int, outputs: int, batch: int | str = "n") -> bytes:
+    """A one-layer network of ``width`` inputs and ``outputs`` outputs (onnx needed)."""
+    pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    w = numpy_helper.from_array(np.zeros((width, outputs), np.float32), "w")
+    graph = helper.make_graph([helper.make_node("MatMul", ["obs", "w"], ["logits"])], "p",
+                              [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [batch, width])],
+                              [helper.make_tensor_value_info("logits", TensorProto.FLOAT, [batch, outputs])], [w])
+    return bytes(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]).SerializeToString())
+
+
+@pytest.mark.parametrize("edit,match", [
+    ({"pdp_levels": [0.1, 0.2, 0.25, 0.5, 0.75, 1.0]}, r"gives \(9,\) outputs a state .* names 6 PDP and 4 budget"),
+    ({"budget_levels_ms": [25, 50]}, r"gives \(9,\) outputs .* 5 PDP and 2 budget levels \(7\)"),
+    ({"pdp_levels": ["a", "b"]}, r"'pdp_levels' must be a non-empty list of positive numbers"),
+    ({"pdp_levels": [0.5, 2.0]}, r"'pdp_levels' must lie in \(0, 1\]"),
+    ({"family": {"belt_speed_m_s": 0.3, "object_period_s": [2, 6]}}, r"family.belt_speed_m_s must be a range"),
+    ({"features": None}, r"features differ"),
+])
+def test_a_card_that_does_not_fit_its_network_or_is_malformed_is_refused_naming_it(
+        tmp_path: Path, edit: dict[str, object], match: str) -> None:
+    model = doctored(tmp_path, edit)
+    with pytest.raises(ValueError, match=match) as err:
+        make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+    assert str(model.with_suffix(".json")) in str(err.value) or str(model) in str(err.value)
+
+
+@pytest.mark.parametrize("text,match", [("{not json", "not JSON"), ("[1, 2]", "a JSON object was expected"),
+                                        ("", "not JSON")])
+def test_a_card_that_is_no_json_object_is_refused_naming_it(tmp_path: Path, text: str, match: str) -> None:
+    model = doctored(tmp_path)
+    model.with_suffix(".json").write_text(text)
+    with pytest.raises(ValueError, match=f"card {model.with_suffix('.json')}: {match}"):
+        make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+
+
+@pytest.mark.parametrize("width,outputs,batch,match", [
+    (len(F.FEATURE_NAMES) - 1, 9, "n", "does not take a batch of 21 features"),
+    (len(F.FEATURE_NAMES), 9, 1, "does not take a batch of 21 features"),
+    (len(F.FEATURE_NAMES), 7, "n", r"gives \(7,\) outputs"),
+])
+def test_a_network_that_does_not_fit_the_features_or_its_card_is_refused_when_built(
+        tmp_path: Path, width: int, outputs: int, batch: int | str, match: str) -> None:
+    model = doctored(tmp_path, onnx=linear_onnx(width, outputs, batch))
+    with pytest.raises(ValueError, match=match) as err:
+        make_policy(PolicyConfig(name="learned", learned_model=str(model)))
+    assert str(model) in str(err.value)
+
+
+def test_a_model_that_cannot_serve_the_scenario_is_refused_before_a_run_starts(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from interfaces.cli import main
+
+    model = doctored(tmp_path, {"budget_levels_ms": [25, 50]})
+    scenario = str(ROOT / "configs" / "scenarios" / "co_design.yaml")
+    learned = ["--set", "policy.name=learned", "--set", f"policy.learned_model={model}"]
+    assert main(["validate", scenario, *learned]) == 2
+    assert f"policy.learned_model: learned policy model {model} gives" in capsys.readouterr().err
+    assert main(["run", scenario, *learned, "--results", str(tmp_path / "runs")]) == 2
+    assert not (tmp_path / "runs").exists(), "refused before any run directory or process"
+    assert main(["validate", scenario, "--set", "policy.name=learned", "--set", "work_cell.belt_speed_m_s=0.8"]) == 2
+    assert "work_cell: work_cell.belt_speed_m_s = 0.8 is outside the family" in capsys.readouterr().err
 
 
 def test_a_cell_outside_the_learned_policys_family_is_refused_naming_both() -> None:
@@ -246,6 +328,10 @@ def test_quick_training_exports_a_model_the_edge_loads(tmp_path: Path) -> None:
     assert "wrote " in proc.stdout
     card = json.loads((tmp_path / "policy.json").read_text())
     assert card["onnx_check"]["argmax_agreement"] == 1.0 and card["evaluation"]["learned"]["tasks"] > 0
+    # What PPO trained (whole rollouts), and the command as given.
+    assert card["training"]["steps_trained"] >= card["training"]["steps"]
+    assert card["training"]["steps_trained"] % (card["training"]["n_envs"] * card["training"]["n_steps"]) == 0
+    assert card["command"] == f"python tools/train_policy.py --quick --out {tmp_path}"
     assert (tmp_path / "training_curve.png").stat().st_size > 0
     pol = make_policy(PolicyConfig(name="learned", learned_model=str(tmp_path / "policy.onnx")))
     assert 0.1 <= pol.decide(state([track(0, -0.5)])).pdp <= 1.0
@@ -286,3 +372,27 @@ def test_lambda_choice_keeps_the_invariant_then_prefers_the_overload_hall() -> N
     sc = hall_scenario(None, "heuristic", 96, 2)
     assert (sc.loops, sc.seed, sc.duration_s, sc.detailed_loops) == (96, 2, 15.0, 0)
     assert (sc.hall.work_cells_per_row, sc.hall.work_cell_pitch_m, sc.policy.name) == (16, (4.0, 4.0), "heuristic")
+
+
+def test_returns_are_repriced_at_the_chosen_lambda_from_the_episodes() -> None:
+    from training.policy.evaluate import at_lambda, pool
+
+    card = json.loads(DEFAULT_POLICY_MODEL.with_suffix(".json").read_text())
+    rows = card["evaluation_rows"]["learned"]  # evaluated at lambda 30, the shipped one
+    assert at_lambda({"rows": rows, **pool(rows)}, 30.0)["return"] == pytest.approx(pool(rows)["return"])
+    heuristic = at_lambda({"rows": card["evaluation_rows"]["heuristic"]}, 30.0)
+    assert heuristic["lambda"] == 30.0 and [r["cost"] for r in heuristic["rows"]] == [
+        r["cost"] for r in card["evaluation_rows"]["heuristic"]]
+
+
+def test_the_policy_sweep_says_what_is_missing_instead_of_a_traceback(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    from training.policy import sweep
+
+    monkeypatch.setattr(sweep, "RESULTS", tmp_path)
+    assert sweep.main(["--report"]) == 2
+    assert "pareto.json does not exist" in capsys.readouterr().err
+    if sweep.T.missing_packages():
+        pytest.skip("the rest needs the training packages (make install-train)")
+    assert sweep.main(["--reuse", "--lambdas", "3,10"]) == 2  # at once, before any evaluation
+    assert f"no trained model in {tmp_path / 'lambda-3'}, {tmp_path / 'lambda-10'}" in capsys.readouterr().err

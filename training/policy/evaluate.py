@@ -50,6 +50,13 @@ def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISOD
     return {"episodes": episodes, "lambda": lam, **pool(rows), "rows": rows}
 
 
+def at_lambda(result: dict[str, Any], lam: float) -> dict[str, Any]:
+    """``result`` of ``run_episodes`` with its returns as the reward of ``lam`` prices them: a
+    return is ``lam`` x (placed - missed - dropped) - cost, and only ``lam`` differs."""
+    rows = [{**r, "return": lam * (r["placed"] - r["missed"] - r["dropped"]) - r["cost"]} for r in result["rows"]]
+    return {**result, "lambda": lam, **pool(rows), "rows": rows}
+
+
 def idle_link(state: LoopState) -> LoopState:
     """``state`` as on an idle radio cell: no queueing delay (the load feature frozen)."""
     return dataclasses.replace(state, link=dataclasses.replace(state.link, cell_queueing_s=0.0))

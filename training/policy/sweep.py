@@ -56,10 +56,9 @@ def lam_dir(lam: float) -> Path:
 
 def train_one(lam: float, steps: int, seed: int, episodes: int) -> dict[str, Any]:
     """Train and evaluate the policy of one lambda (in a worker process)."""
-    args = T.parser().parse_args(["--lambda", str(lam), "--steps", str(steps), "--seed", str(seed),
-                                  "--eval-episodes", str(episodes), "--out", str(lam_dir(lam)),
-                                  "--no-baselines"])
-    return T.run(args)
+    argv = ["--lambda", str(lam), "--steps", str(steps), "--seed", str(seed), "--eval-episodes", str(episodes),
+            "--out", str(lam_dir(lam)), "--no-baselines"]
+    return T.run(T.parser().parse_args(argv), argv)
 
 
 def evaluate_baselines(episodes: int) -> dict[str, dict[str, Any]]:
@@ -204,6 +203,8 @@ def ship(lam: float, why: str, rows: list[dict[str, Any]], evaluation: dict[str,
     """Copy the chosen policy to domain/models with the choice (and the overload hall's runs it
     rests on), and the sweep's evaluation of it beside ``none`` and ``heuristic``, in its model
     card."""
+    from training.policy.evaluate import at_lambda
+
     src = lam_dir(lam)
     dst = DEFAULT_POLICY_MODEL
     shutil.copyfile(src / "policy.onnx", dst.with_suffix(".onnx.tmp"))
@@ -212,6 +213,8 @@ def ship(lam: float, why: str, rows: list[dict[str, Any]], evaluation: dict[str,
     card["lambda_choice"] = {"chosen": lam, "why": why, "rule": __doc__.split("Choice rule: ")[1].split("\n\n")[0]
                              .replace("\n", " "), "sweep": "results/policy/pareto.md", "table": rows,
                              "overload_hall": hall}
+    # Every return at the chosen lambda: the baselines were evaluated once, at the default one.
+    evaluation = {name: at_lambda(res, lam) for name, res in evaluation.items()}
     card["evaluation"] = {name: {k: v for k, v in res.items() if k != "rows"} for name, res in evaluation.items()}
     card["evaluation_rows"] = {name: res["rows"] for name, res in evaluation.items()}
     dst.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
@@ -237,6 +240,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="rebuild results/policy/pareto.md from pareto.json (no training, no evaluation)")
     args = ap.parse_args(argv)
     if args.report:
+        if not (RESULTS / "pareto.json").is_file():
+            print(f"no sweep to report: {RESULTS / 'pareto.json'} does not exist (run make train-policy)",
+                  file=sys.stderr)
+            return 2
         saved = json.loads((RESULTS / "pareto.json").read_text())
         md = markdown(saved["rows"], saved["chosen_lambda"], saved["why"], saved, saved.get("hall"))
         (RESULTS / "pareto.md").write_text(md)
@@ -251,6 +258,10 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.time()
     lambdas = [float(x) for x in args.lambdas.split(",")]
+    if args.reuse and (absent := [str(lam_dir(lam)) for lam in lambdas
+                                  if not all((lam_dir(lam) / f).is_file() for f in ("policy.onnx", "policy.json"))]):
+        print(f"--reuse: no trained model in {', '.join(absent)} (train them first: drop --reuse)", file=sys.stderr)
+        return 2
     RESULTS.mkdir(parents=True, exist_ok=True)
     if not args.reuse:
         with ProcessPoolExecutor(max_workers=args.jobs) as workers:
@@ -264,13 +275,13 @@ def main(argv: list[str] | None = None) -> int:
     trained_steps = set()
     for lam in lambdas:  # each training evaluated its policy on the same cells, through ONNX Runtime
         card = json.loads((lam_dir(lam) / "policy.json").read_text())
-        trained_steps.add(card["training"]["steps"])
+        trained_steps.add(card["training"].get("steps_trained", card["training"]["steps"]))
         rows = card.get("evaluation_rows", {}).get("learned", [])
         if len(rows) == args.episodes and not args.reuse:
             learned[lam] = {**pool(rows), "rows": rows}
         else:
             learned[lam] = run_episodes(policy_for("learned", str(lam_dir(lam) / "policy.onnx")).decide,
-                                        episodes=args.episodes)
+                                        episodes=args.episodes, lam=lam)
     rows = pareto_rows(baselines, learned)
     hall = None
     if not args.no_hall and qualifying(rows):

@@ -204,7 +204,7 @@ def curve_figure(history: list[dict[str, float]], title: str) -> Any:
 
 
 # ---- the command -------------------------------------------------------------------------------
-def run(args: argparse.Namespace) -> dict[str, Any]:
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict[str, Any]:
     """Train, export, check and evaluate; returns the model card (also written)."""
     import stable_baselines3
     import torch
@@ -265,11 +265,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                  "estimator_error": "domain/data/frame_model.json", "episode_s": episode_s,
                  "training_seed": args.seed, "evaluation_seeds": f"{EVAL_SEED}..",
                  },
-        "training": {"algorithm": "PPO (stable-baselines3)", "steps": args.steps, **hyper,
+        "training": {"algorithm": "PPO (stable-baselines3)", "steps": args.steps,
+                     # PPO trains whole rollouts (n_envs x n_steps): what it trained, at least ``steps``.
+                     "steps_trained": int(model.num_timesteps), **hyper,
                      "threads": args.threads, "train_s": round(train_s, 1), "history": history},
         "onnx_check": check,
         "versions": {"torch": torch.__version__, "stable_baselines3": stable_baselines3.__version__},
-        "command": "python tools/train_policy.py " + " ".join(sys.argv[1:]),
+        # The arguments it was given (a sweep's worker gives its own, not the sweep's command line).
+        "command": "python tools/train_policy.py " + " ".join(argv if argv is not None else sys.argv[1:]),
     }
     # The card must be complete before the learned policy can load the model for evaluation.
     card_path = onnx_path.with_suffix(".json")
@@ -345,9 +348,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is None:
             with tempfile.TemporaryDirectory(prefix="policy-quick-") as tmp:
                 args.out = Path(tmp)
-                run(args)
+                run(args, argv)
             return 0
     if args.out is None:
         args.out = DEFAULT_POLICY_MODEL.parent
-    run(args)
+    run(args, argv)
     return 0
