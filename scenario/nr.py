@@ -7,9 +7,9 @@ The defaults reproduce the reference study's cell (docs/netsim.md, "Configuratio
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 # The MCS tables of TS 38.214 5.1.3.1 that netsim.nr.phy loads.
 McsTableName = Literal["qam64", "qam256", "qam64_low_se"]
@@ -26,6 +26,13 @@ class NrConfig(BaseModel):
     """Every parameter of ``NrCell``; units are in the field names."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _bounded_ints(cls, v: Any) -> Any:  # as scenario.schema.Strict's (which imports this module)
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 2**53:
+            raise ValueError(f"{v:.3g} is too large: integers here are below 2**53")
+        return v
 
     # --- carrier and numerology -------------------------------------------------------------
     carrier_frequency_hz: float = Field(
@@ -60,17 +67,17 @@ class NrConfig(BaseModel):
         default=None, ge=0, description="Highest MCS link adaptation may pick (None: top of the table).")
 
     # --- radio --------------------------------------------------------------------------------
-    gnb_tx_power_dbm: float = Field(default=23.0, description="gNB transmit power over the carrier.")
+    gnb_tx_power_dbm: float = Field(default=23.0, ge=-30, le=60, description="gNB transmit power over the carrier.")
     ue_tx_power_dbm: float = Field(
-        default=23.0, description="UE maximum transmit power, spread over its allocated PRBs.")
-    gnb_antenna_gain_dbi: float = Field(default=0.0, description="gNB antenna gain (SISO).")
-    ue_antenna_gain_dbi: float = Field(default=0.0, description="UE antenna gain (SISO).")
-    gnb_noise_figure_db: float = Field(default=5.0, ge=0, description="gNB receiver noise figure.")
+        default=23.0, ge=-40, le=33, description="UE maximum transmit power, spread over its allocated PRBs.")
+    gnb_antenna_gain_dbi: float = Field(default=0.0, ge=-20, le=40, description="gNB antenna gain (SISO).")
+    ue_antenna_gain_dbi: float = Field(default=0.0, ge=-20, le=40, description="UE antenna gain (SISO).")
+    gnb_noise_figure_db: float = Field(default=5.0, ge=0, le=30, description="gNB receiver noise figure.")
     ue_noise_figure_db: float = Field(
-        default=9.0, ge=0, description="UE receiver noise figure (InF calibration value).")
-    noise_psd_dbm_per_hz: float = Field(default=-174.0, description="Thermal noise density.")
+        default=9.0, ge=0, le=30, description="UE receiver noise figure (InF calibration value).")
+    noise_psd_dbm_per_hz: float = Field(default=-174.0, ge=-200, le=-150, description="Thermal noise density.")
     interference_margin_db: float = Field(
-        default=0.0, ge=0, description="Extra interference over thermal; 0 for the study's single cell.")
+        default=0.0, ge=0, le=60, description="Extra interference over thermal; 0 for the study's single cell.")
 
     # --- channel: TR 38.901 InF-SL ------------------------------------------------------------
     hall_length_m: float = Field(
@@ -90,17 +97,17 @@ class NrConfig(BaseModel):
     shadowing_enabled: bool = Field(default=True, description="Log-normal shadowing on or off.")
     shadowing_decorrelation_m: float = Field(
         default=10.0, gt=0, description="Shadowing decorrelation distance (exponential correlation).")
-    los_shadowing_std_db: float = Field(default=4.3, ge=0, description="Shadowing sigma in LOS.")
-    nlos_shadowing_std_db: float = Field(default=5.7, ge=0, description="Shadowing sigma in InF-SL NLOS.")
-    k_factor_mean_db: float = Field(default=7.0, description="Rician K-factor mean in LOS.")
-    k_factor_std_db: float = Field(default=8.0, ge=0, description="Rician K-factor sigma in LOS.")
+    los_shadowing_std_db: float = Field(default=4.3, ge=0, le=30, description="Shadowing sigma in LOS.")
+    nlos_shadowing_std_db: float = Field(default=5.7, ge=0, le=30, description="Shadowing sigma in InF-SL NLOS.")
+    k_factor_mean_db: float = Field(default=7.0, ge=-30, le=40, description="Rician K-factor mean in LOS.")
+    k_factor_std_db: float = Field(default=8.0, ge=0, le=30, description="Rician K-factor sigma in LOS.")
     fading: Literal["rician_rayleigh", "none"] = Field(
         default="rician_rayleigh", description="Small-scale fading per subband: Rician (LOS) / Rayleigh "
         "(NLOS) with AR(1) time correlation, or none (flat, static).")
     subband_prb: int = Field(
         default=20, ge=1, description="PRBs per fading subband (~ coherence bandwidth, 3.6 MHz).")
     ue_speed_kmh: float = Field(
-        default=3.0, ge=0, description="Effective speed setting the Doppler f_D of the AR(1) fading.")
+        default=3.0, ge=0, le=500, description="Effective speed setting the Doppler f_D of the AR(1) fading.")
     channel_update_period_slots: int = Field(
         default=5, ge=1, description="Slots between fading updates; rho = J0(2 pi f_D period).")
 
@@ -120,21 +127,21 @@ class NrConfig(BaseModel):
         default="chase", description="Chase combining adds the effective SINRs of the transmissions; "
         "none decodes each transmission alone.")
     k1_slots: int = Field(
-        default=1, ge=0, description="PDSCH to HARQ-ACK delay (UE capability 1 makes K1 >= 1 usual).")
+        default=1, ge=0, le=31, description="PDSCH to HARQ-ACK delay (UE capability 1 makes K1 >= 1 usual).")
     k2_slots: int = Field(
-        default=1, ge=0, description="UL grant (PDCCH) to PUSCH delay; capability 1 needs K2 >= 1.")
+        default=1, ge=0, le=32, description="UL grant (PDCCH) to PUSCH delay; capability 1 needs K2 >= 1.")
     ul_access: Literal["grant_based", "configured_grant"] = Field(
         default="grant_based", description="Grant-based uplink (SR -> grant -> PUSCH with BSR) or a "
         "configured grant per UE plus dynamic grants from its BSRs.")
-    sr_period_slots: int = Field(default=1, ge=1, description="SR occasion period per UE.")
+    sr_period_slots: int = Field(default=1, ge=1, le=640, description="SR occasion period per UE.")
     sr_grant_bytes: int = Field(
         default=1600, ge=16, description="Size of the first grant after an SR (gNB knows no size yet).")
     cg_period_slots: int = Field(
         default=1, ge=1, description="Configured-grant period per UE (UEs staggered over the period).")
     cg_prb: int = Field(default=8, ge=1, description="PRBs of each configured-grant occasion.")
     l2_header_bytes_per_segment: int = Field(
-        default=5, ge=0, description="MAC subheader (3 B) + RLC/PDCP header share per packet segment.")
-    bsr_bytes: int = Field(default=2, ge=0, description="Short BSR MAC CE with subheader, per UL TB.")
+        default=5, ge=0, le=64, description="MAC subheader (3 B) + RLC/PDCP header share per packet segment.")
+    bsr_bytes: int = Field(default=2, ge=0, le=64, description="Short BSR MAC CE with subheader, per UL TB.")
 
     # --- link adaptation ----------------------------------------------------------------------
     bler_target: float = Field(
@@ -204,7 +211,8 @@ class NrConfig(BaseModel):
         if self.max_mcs is not None and self.max_mcs >= n_mcs:
             raise ValueError(f"max_mcs={self.max_mcs} but {self.mcs_table} has MCS 0..{n_mcs - 1}")
         if self.olla_min_offset_db > self.olla_max_offset_db:
-            raise ValueError("olla_min_offset_db must be <= olla_max_offset_db")
+            raise ValueError(f"olla_min_offset_db ({self.olla_min_offset_db:g}) must be <= "
+                             f"olla_max_offset_db ({self.olla_max_offset_db:g})")
         if self.cg_prb > self.n_prb:
             raise ValueError(f"cg_prb={self.cg_prb} exceeds n_prb={self.n_prb}")
         return self

@@ -55,7 +55,7 @@ class NodeProfile(Strict):
     reference core (fabric/host_speed.py) and job CPU times are scaled by it, so one
     scenario gives the same compute latencies on any host."""
 
-    cpus: float = Field(gt=0, le=64, description="speed in reference cores (fabric/data/"
+    cpus: float = Field(ge=0.001, le=64, description="speed in reference cores (fabric/data/"
                         "reference_core.json): 0.25 is a quarter of the reference core on any host; "
                         "in the docker runtime also the container's CPU quota, in host cores")
     mem_mb: int = Field(default=1024, ge=64, description="memory limit, MiB")
@@ -153,9 +153,9 @@ class HallConfig(Strict):
     """The factory hall and where the work cells and the gNB stand in it (gives netsim its UE
     positions)."""
 
-    length_m: float = Field(default=120.0, gt=0, description="hall length (x), metres")
-    width_m: float = Field(default=60.0, gt=0, description="hall width (y), metres")
-    height_m: float = Field(default=10.0, gt=0, description="hall height, metres")
+    length_m: float = Field(default=120.0, gt=0, le=1000, description="hall length (x), metres")
+    width_m: float = Field(default=60.0, gt=0, le=1000, description="hall width (y), metres")
+    height_m: float = Field(default=10.0, gt=0, le=100, description="hall height, metres")
     gnb_position_m: tuple[float, float, float] = Field(
         default=(60.0, 30.0, 1.5), description="gNB (and Edge) position, metres"
     )
@@ -185,12 +185,15 @@ class HallConfig(Strict):
     @model_validator(mode="after")
     def _gnbs_in_hall(self) -> HallConfig:
         layout = self.inf_layout
+        size = f"0..{self.length_m:g} x 0..{self.width_m:g} x 0..{self.height_m:g} m"
         if layout is None:
             if self.work_cell_fill == "gnbs":
                 raise ValueError("hall.work_cell_fill = gnbs places the work cells around several "
                                  "gNBs: set hall.inf_layout, or work_cell_fill = centre")
+            x, y, z = self.gnb_position_m
+            if not (0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m):
+                raise ValueError(f"hall.gnb_position_m = ({x:g}, {y:g}, {z:g}) is outside the hall ({size})")
             return self
-        size = f"0..{self.length_m:g} x 0..{self.width_m:g} x 0..{self.height_m:g} m"
         for i, (x, y, z) in enumerate(layout.gnb_positions_m or ()):
             if not (0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m):
                 raise ValueError(
@@ -296,12 +299,12 @@ class AgvConfig(Strict):
 class WorkCellConfig(Strict):
     """One work cell: a conveyor belt bringing parts, its arm's pick zone (one control loop)."""
 
-    belt_speed_m_s: float = Field(default=0.2, gt=0, le=1.0, description="belt speed, m/s")
-    object_period_s: float = Field(default=4.0, gt=0.5, description="time between objects, s")
+    belt_speed_m_s: float = Field(default=0.2, ge=0.01, le=1.0, description="belt speed, m/s")
+    object_period_s: float = Field(default=4.0, gt=0.5, le=3600, description="time between objects, s")
     object_jitter_s: float = Field(default=0.0, ge=0, description="uniform jitter on spawn times, s")
-    first_object_s: float = Field(default=0.5, ge=0, description="spawn time of the first object, s")
+    first_object_s: float = Field(default=0.5, ge=0, le=86400, description="spawn time of the first object, s")
     first_object_spread_s: float = Field(
-        default=0.0, ge=0, description="each cell's first object comes later by uniform(0, this), drawn "
+        default=0.0, ge=0, le=86400, description="each cell's first object comes later by uniform(0, this), drawn "
         "per cell, s: belts out of phase (0: every belt's first object at first_object_s)"
     )
     object_size_m: float = Field(default=0.06, gt=0.02, le=0.15, description="object edge length, m")
@@ -388,7 +391,7 @@ class RobotConfig(Strict):
     state_latency_us: int = Field(default=1000, ge=1, description="joint state physics->robot, us")
     actuation_latency_us: int = Field(default=1000, ge=1, description="robot->physics command, us")
     max_estimate_age_ms: float = Field(
-        default=400.0, gt=0, description="older pose estimates make the arm hold back"
+        default=400.0, ge=1, le=60_000, description="older pose estimates make the arm hold back"
     )
     delay_compensation: bool = Field(
         default=True, description="predict the object to now from the estimate's capture time"
@@ -435,12 +438,12 @@ class PolicyConfig(Strict):
                               "belt travel time) before a part reaches the pick window")
     stale_ms: float = Field(default=150.0, gt=0, description="`heuristic`: an upstream part's estimate "
                             "older than this is refreshed before the part's approach starts")
-    latency_budget_ms: float = Field(default=100.0, ge=1.0,
+    latency_budget_ms: float = Field(default=100.0, ge=1.0, le=10_000,
                                      description="L_r signalled with the PDP (`fixed`, `heuristic`); at "
                                      "least a slot (1 ms): a packet waits for a slot boundary and is "
                                      "delivered at a slot end")
     learned_model: str | None = Field(
-        default=None, description="`learned`: the ONNX model (its model card, the .json beside it, "
+        default=None, min_length=1, description="`learned`: the ONNX model (its model card, the .json beside it, "
         "must be there too); default domain/models/policy.onnx, made by `make train-policy`")
     signalling: Literal["app", "lower"] = Field(
         default="app", description="how the QoS reaches the network: `app`, to the camera only, as "
@@ -563,8 +566,8 @@ class NetsimConfig(Strict):
     nr: NrConfig = Field(
         default_factory=NrConfig,
         description="`nr`: every NR cell parameter (scenario/nr.py); the hall size comes from `hall`")
-    ul_rate_mbps: float = Field(default=178.6, gt=0, description="`simple`: uplink capacity, Mbit/s")
-    dl_rate_mbps: float = Field(default=150.0, gt=0, description="`simple`: downlink capacity, Mbit/s")
+    ul_rate_mbps: float = Field(default=178.6, gt=0, le=1e6, description="`simple`: uplink capacity, Mbit/s")
+    dl_rate_mbps: float = Field(default=150.0, gt=0, le=1e6, description="`simple`: downlink capacity, Mbit/s")
     loss_probability: float = Field(default=0.0, ge=0, lt=1, description="`simple`: per-packet loss")
     buffer_bytes: int = Field(default=1_000_000, ge=1500, description="`simple`: sender buffer per UE, bytes")
     handover: HandoverConfig = Field(
@@ -582,8 +585,8 @@ class NetsimConfig(Strict):
 
 
 class WatchdogConfig(Strict):
-    ready_timeout_s: float = Field(default=120.0, gt=0, description="all federates ready within")
-    window_timeout_s: float = Field(default=10.0, gt=0, description="a federate answers a window within")
+    ready_timeout_s: float = Field(default=120.0, ge=1, description="all federates ready within")
+    window_timeout_s: float = Field(default=10.0, ge=0.1, description="a federate answers a window within")
     run_timeout_s: float = Field(default=3600.0, gt=0, description="wall-clock limit of the run")
 
 
@@ -649,6 +652,13 @@ class Scenario(Strict):
                 )
         if self.netsim.slot_us % w:
             raise ValueError(f"window_us ({w}) must divide netsim.slot_us ({self.netsim.slot_us})")
+        if self.duration_us < w:
+            raise ValueError(f"duration_s = {self.duration_s:g} s is shorter than one window "
+                             f"(window_us = {w} us): nothing would be simulated")
+        if self.runtime != "docker" and (wall := [name for name, node in self.nodes if node.timing == "wall"]):
+            raise ValueError(f"nodes.{wall[0]}.timing = wall measures jobs in the node's CPU-limited "
+                             f"container, which only runtime docker gives (runtime is {self.runtime}): "
+                             "use timing cpu or model, or runtime docker")
         if (self.policy.name != "none" and 0 < self.detailed_loops < self.loops
                 and self.edge.policy_period_ms * 1000 <= 2 * w):
             raise ValueError(
@@ -848,7 +858,8 @@ def _format_validation(exc: ValidationError) -> list[tuple[str, str]]:
         if err["type"] == "extra_forbidden":
             allowed = _allowed_fields(err["loc"][:-1])
             msg = f"unknown field; allowed here: {', '.join(allowed)}" if allowed else "unknown field"
-        elif err["loc"] and "input" in err and err["type"] != "missing":
+        elif err["loc"] and "input" in err and err["type"] != "missing" and not isinstance(err["input"], dict):
+            # A section's own check names its values; the whole section given says nothing more.
             msg = f"{msg} (given: {_given(err['input'])})"
         out.append((loc, msg))
     return out

@@ -72,12 +72,37 @@ def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
     ({"camera": {"readout_latency_us": 10**25}}, "camera.readout_latency_us", "below 2**53"),
     ({"nodes": {"edge": {"cpus": 1, "model_us": {"compres": {"mean_us": 10}}}}}, "nodes",
      "'compres' is not a job kind; job kinds: compress, pose, policy, control"),
+    # Values that passed the schema and then crashed a started run (an overflow, a NaN, a hang).
+    ({"robot": {"max_estimate_age_ms": 1e308}}, "robot.max_estimate_age_ms", "less than or equal to 60000"),
+    ({"policy": {"latency_budget_ms": 1e308}}, "policy.latency_budget_ms", "less than or equal to 10000"),
+    ({"work_cell": {"object_period_s": 1e308}}, "work_cell.object_period_s", "less than or equal to 3600"),
+    ({"work_cell": {"first_object_spread_s": 1e13}}, "work_cell.first_object_spread_s", "less than or equal to 86400"),
+    ({"work_cell": {"belt_speed_m_s": 1e-5}}, "work_cell.belt_speed_m_s", "greater than or equal to 0.01"),
+    ({"netsim": {"nr": {"ue_tx_power_dbm": 5000}}}, "netsim.nr.ue_tx_power_dbm", "less than or equal to 33"),
+    ({"netsim": {"nr": {"noise_psd_dbm_per_hz": 1e308}}}, "netsim.nr.noise_psd_dbm_per_hz", "less than or equal to -150"),
+    ({"netsim": {"nr": {"k2_slots": 10**24}}}, "netsim.nr.k2_slots", "less than or equal to 32"),
+    ({"netsim": {"nr": {"ue_speed_kmh": 1e12}}}, "netsim.nr.ue_speed_kmh", "less than or equal to 500"),
+    ({"netsim": {"model": "simple", "ul_rate_mbps": 1e308}}, "netsim.ul_rate_mbps", "less than or equal to 1000000"),
+    ({"hall": {"length_m": 100_000, "width_m": 100_000}}, "hall.length_m", "less than or equal to 1000"),
+    ({"hall": {"gnb_position_m": [60, 30, 1000]}}, "hall", "hall.gnb_position_m = (60, 30, 1000) is outside the hall"),
+    ({"nodes": {"camera": {"cpus": 1e-300}}}, "nodes.camera.cpus", "greater than or equal to 0.001"),
+    ({"nodes": {"edge": {"cpus": 1, "timing": "wall"}}}, "(scenario)", "only runtime docker gives"),
+    ({"duration_s": 1e-7}, "(scenario)", "shorter than one window"),
+    ({"watchdog": {"window_timeout_s": 1e-9}}, "watchdog.window_timeout_s", "greater than or equal to 0.1"),
+    ({"policy": {"learned_model": ""}}, "policy.learned_model", "at least 1 character"),
 ])
 def test_values_no_run_could_carry_are_refused_naming_the_field(data: dict, field: str, says: str) -> None:
     with pytest.raises(ScenarioError) as exc:
         parse_scenario(data)
-    [(got, msg)] = exc.value.errors
-    assert got == field and says in msg
+    [(got, msg)] = exc.value.errors[:1]
+    assert got == field and says in msg, exc.value.errors
+
+
+def test_a_sections_own_check_is_not_followed_by_the_whole_section() -> None:
+    with pytest.raises(ScenarioError) as exc:
+        parse_scenario({"netsim": {"nr": {"olla_min_offset_db": 20}}})
+    [(field, msg)] = exc.value.errors
+    assert field == "netsim.nr" and "olla_min_offset_db (20) must be <= olla_max_offset_db (" in msg and "given" not in msg
 
 
 def test_an_override_nested_too_deep_is_refused_naming_it() -> None:
