@@ -31,6 +31,8 @@ from fabric.settings import env_name, settings
 SCORE_VERSION = 1
 SCORE_ENV = env_name("host_score")
 CACHE_MAX_AGE_DAYS = 7
+# A cached score further than this factor from the reference core's is no measurement of a real host.
+PLAUSIBLE_SPREAD = 50.0
 REFERENCE_FILE = "data/reference_core.json"
 # Repetitions of the whole mix: the full measurement (start of a node, cache miss) and the short
 # probe a node takes during a run to see whether its speed drifted.
@@ -199,8 +201,11 @@ def reference() -> HostScore:
 
 
 def cache_path() -> Path:
-    """Where this host's score is cached: ``$XDG_CACHE_HOME/cosim5g/host_score.json`` (default
+    """Where this host's score is cached: ``host_score.json`` in ``COSIM5G_CACHE_DIR`` (where the
+    measured frame models are cached too), else in ``$XDG_CACHE_HOME/cosim5g`` (default
     ``~/.cache``)."""
+    if (given := settings().cache_dir) is not None:
+        return given / "host_score.json"
     root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(root) / "cosim5g" / "host_score.json"
 
@@ -213,9 +218,15 @@ def _read_cache(path: Path, env: dict[str, str]) -> HostScore | None:
     try:
         data = json.loads(path.read_text())
         when = datetime.fromisoformat(data["measured_at"])
-        if data["env"] != env or datetime.now(UTC) - when > timedelta(days=CACHE_MAX_AGE_DAYS):
+        age = datetime.now(UTC) - when
+        score = float(data["score"])
+        # Every job's duration is scaled by the score: one no measurement gives (not a positive
+        # number, or far from any core's) or from the future would silently change every result.
+        ref = reference().score
+        if (data["env"] != env or not timedelta(days=-1) <= age <= timedelta(days=CACHE_MAX_AGE_DAYS)
+                or not math.isfinite(score) or not ref / PLAUSIBLE_SPREAD <= score <= ref * PLAUSIBLE_SPREAD):
             return None
-        return HostScore(score=float(data["score"]), components_ms=dict(data["components_ms"]),
+        return HostScore(score=score, components_ms=dict(data["components_ms"]),
                          source="cache", measured_at=data["measured_at"], env=dict(data["env"]))
     except (OSError, ValueError, KeyError, TypeError):
         return None  # no cache, another host's or a damaged one: measure again

@@ -417,6 +417,12 @@ class EdgeConfig(Strict):
         "between a gNB and the Edge, ms: every uplink frame reaches the Edge this long after its "
         "gNB delivered it, every downlink packet enters its gNB this long after the Edge sent it "
         "(0 to 1000); ignored with `per_gnb`")
+    abstract_compute: Literal["per_loop", "shared"] = Field(
+        default="per_loop", description="where the abstract loops' Edge jobs (pose, policy) run: "
+        "`per_loop`, each loop's on a node of its own of nodes.edge.cpus, so that no loop waits for "
+        "another's (an Edge that grows with its loops: the radio cell is what limits them); "
+        "`shared`, every abstract loop of an Edge on that Edge's one node, queueing as the detailed "
+        "loops do in the Edge federate (the Edge's compute limits them too)")
 
 
 class PolicyConfig(Strict):

@@ -89,7 +89,17 @@ class LoopsFederate(Federate):
 
         self.kin = ArmKinematics()  # the arms' IK, all at once (every arm has the same model and base)
         self.loops: dict[int, AbstractLoop] = {}
+        # With `shared` Edge compute, one node per Edge for all its abstract loops.
+        shared: dict[str, ComputeNode] = {}
         for i in range(sc.detailed_loops, sc.loops):
+            if sc.edge.abstract_compute == "shared":
+                name = self.edges[i].name
+                if name not in shared:
+                    shared[name] = ComputeNode(f"edge-{name}", modelled(nodes.edge), self.rng(f"edge/{name}/compute"))
+                    self.record_jobs(shared[name])
+                edge_cpu = shared[name]
+            else:
+                edge_cpu = ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute"))
             self.loops[i] = AbstractLoop(
                 index=i,
                 ctl=PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S),
@@ -98,11 +108,11 @@ class LoopsFederate(Federate):
                 size_rng=self.rng(f"camera-{i}/size"),
                 error_rng=self.rng(f"edge-{i}/error"),
                 camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),
-                edge_cpu=ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute")),
+                edge_cpu=edge_cpu,
                 robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
             )
             lp = self.loops[i]
-            self.record_jobs(lp.camera_cpu, lp.edge_cpu, lp.robot_cpu)
+            self.record_jobs(lp.camera_cpu, *(() if shared else (lp.edge_cpu,)), lp.robot_cpu)
         self.schedule(0, self._control_tick)
         self.next_tick_us = 0  # when ``_control_tick``, its only sender of commands, runs next
         self.schedule(0, self._policy_tick)

@@ -15,6 +15,7 @@ from scenario.schema import load_scenario
 
 pytestmark = pytest.mark.integration
 FACTORY_SMALL = Path(__file__).parents[2] / "configs" / "scenarios" / "factory_small.yaml"
+SMOKE = FACTORY_SMALL.with_name("smoke.yaml")
 
 
 def run_factory(tmp_path: Path, placement: str) -> tuple[dict, dict]:
@@ -60,3 +61,22 @@ def test_the_detailed_and_the_abstract_loops_of_one_edge_see_one_load_control(tm
               "queueing_delay_s", "frame_loss", "served")
     assert {k: detailed[k] for k in levels} == {k: abstract[k] for k in levels}
     assert detailed["mean_cap"] < 1.0  # the slow start: levels that moved
+
+
+def test_the_abstract_loops_of_an_edge_queue_on_one_node_when_its_compute_is_shared(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    # Eight loops at PDP 1 on an Edge of half a reference core: each loop's poses (8.3 ms, 30 a
+    # second) fit a node of its own, the eight together (2 cores' worth) do not fit one.
+    base = ["loops=8", "detailed_loops=0", "duration_s=2", "policy.name=none", "nodes.edge.cpus=0.5",
+            *MODEL_TIMING_SETS]
+    queues = {}
+    for compute in ("per_loop", "shared"):
+        result = execute_run(load_scenario(SMOKE, [*base, f"edge.abstract_compute={compute}"]), tmp_path)
+        assert result.status == "completed", result.reason
+        jobs = pq.read_table(result.run_dir / "jobs.parquet").to_pylist()
+        poses = [j for j in jobs if j["kind"] == "pose"]
+        queues[compute] = ({j["node"] for j in poses}, max(j["queue_us"] for j in poses))
+    assert queues["per_loop"][0] == {"edge"} and queues["per_loop"][1] < 1_000
+    [node] = queues["shared"][0]
+    assert node.startswith("edge-") and queues["shared"][1] > 100_000, queues

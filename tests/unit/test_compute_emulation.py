@@ -284,6 +284,28 @@ def test_the_host_score_is_cached_with_the_cpu_model_and_date(tmp_path: Path,
     assert first.env["cpu_model"] == host_speed.cpu_model()
 
 
+@pytest.mark.parametrize("edit", [{"score": -50.0}, {"score": 0.0}, {"score": "NaN"}, {"score": "Infinity"},
+                                  {"score": REF.score / 1000}, {"measured_at": "2099-01-01T00:00:00+00:00"}])
+def test_a_cached_score_no_measurement_gives_is_measured_again(tmp_path: Path, edit: dict[str, Any]) -> None:
+    # Every job's duration is scaled by it: a run on it completed with every latency 1 us.
+    env = host_speed.environment()
+    good = {"score": REF.score, "components_ms": REF.components_ms, "env": env,
+            "measured_at": host_speed._now()}
+    path = tmp_path / "host_score.json"
+    path.write_text(json.dumps(good))
+    assert host_speed._read_cache(path, env) is not None
+    path.write_text(json.dumps({**good, **edit}).replace('"NaN"', "NaN").replace('"Infinity"', "Infinity"))
+    assert host_speed._read_cache(path, env) is None
+
+
+def test_the_cache_folder_setting_holds_the_host_score_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COSIM5G_CACHE_DIR", str(tmp_path / "cache"))
+    assert host_speed.cache_path() == tmp_path / "cache" / "host_score.json"
+    monkeypatch.delenv("COSIM5G_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert host_speed.cache_path() == tmp_path / "xdg" / "cosim5g" / "host_score.json"
+
+
 def test_the_reference_core_is_recorded_with_its_cpu_and_date() -> None:
     assert REF.score > 0 and REF.env["cpu_model"] and REF.measured_at
     assert set(REF.components_ms) == set(host_speed.COMPONENTS)
