@@ -10,7 +10,10 @@ RESULTS ?= results/runs
 export MUJOCO_GL ?= egl
 
 .DEFAULT_GOAL := help
-COMPOSE := $(shell docker compose version >/dev/null 2>&1 && echo "docker compose" || echo docker-compose)
+# Found when a recipe runs, not when make starts: `setup` may install it on the way.
+COMPOSE = $$(docker compose version >/dev/null 2>&1 && echo "docker compose" || echo docker-compose)
+# Whether a Docker daemon answers this user: the docker tests then need the images.
+DOCKER_UP := $(shell docker info >/dev/null 2>&1 && echo yes)
 API ?= http://127.0.0.1:8080
 # Compose needs the docker socket's group (the coordinator starts run containers) and runs the
 # coordinator as the invoking user so that results/ stays theirs -- never as root: a root caller's
@@ -19,16 +22,19 @@ PLATFORM_UID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || echo $$u)
 PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
-.PHONY: help setup install run smoke test test-unit test-integration lint bench bench-cluster load bench-docker images up down \
+.PHONY: help setup scenario-check dashboards install run smoke test test-unit test-integration lint bench bench-cluster load bench-docker images up down \
 	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-sensitivity reproduce-factory soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
 
+# The interpreter is found again after host_setup (which may have just installed python3.11),
+# unless PYTHON was given.
 $(BIN)/cosim5g: pyproject.toml
 	PYTHON=$(PYTHON) bash images/host_setup.sh python egl
-	$(PYTHON) -m venv $(VENV)
+	py=$(PYTHON); [ "$(origin PYTHON)" = file ] && command -v python3.11 >/dev/null && py=python3.11; \
+	  $$py -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[api,plots,dev,ray]'
 	@touch $@
@@ -45,7 +51,7 @@ install: $(BIN)/cosim5g ## create .venv and install the project with its test to
 native: $(BIN)/cosim5g ## compile the NR cell's modules (mypyc) and the physics stepper (C) into build/native (used while their sources are unchanged)
 	-$(BIN)/python tools/native.py build
 
-run: $(BIN)/cosim5g native ## run SCENARIO (default co_design) in the process runtime, print KPIs
+run: scenario-check $(BIN)/cosim5g native ## run SCENARIO (default co_design) in the process runtime, print KPIs
 	$(BIN)/cosim5g run $(SCENARIO_FILE) --results $(RESULTS)
 
 smoke: $(BIN)/cosim5g native ## run the 2-loop smoke scenario in the process runtime
@@ -57,7 +63,7 @@ lint: $(BIN)/cosim5g ## ruff over the code, and the layer contracts (import-lint
 	$(BIN)/ruff check $(PACKAGES) benchmarks tools tests
 	$(BIN)/lint-imports
 
-test: $(BIN)/cosim5g native ## lint (ruff + layer contracts), mypy, then every test (docker tests run when a Docker daemon answers)
+test: $(BIN)/cosim5g native $(if $(DOCKER_UP),images) ## lint (ruff + layer contracts), mypy, then every test (with a Docker daemon, the images are built first and the docker tests run)
 	$(BIN)/ruff check $(PACKAGES) benchmarks tools tests
 	$(BIN)/lint-imports
 	$(BIN)/mypy $(PACKAGES) benchmarks tools
@@ -116,7 +122,10 @@ images: setup $(BIN)/cosim5g native ## build the runtime and Prometheus images w
 
 TOKEN_FILE := $(CURDIR)/results/auth/api-token
 TOKEN_AT = $$([ -n "$$COSIM5G_TOKEN" ] && echo 'the value of COSIM5G_TOKEN' || echo '$(TOKEN_FILE) (mode 0600)')
-up: images ## start the platform (coordinator API + Prometheus) and run SCENARIO in containers
+scenario-check:
+	@[ -f $(SCENARIO_FILE) ] || { echo "SCENARIO=$(SCENARIO): no $(SCENARIO_FILE); shipped: $$(ls configs/scenarios | sed 's/\.yaml$$//' | tr '\n' ' ')" >&2; exit 2; }
+
+up: scenario-check images ## start the platform (coordinator API + Prometheus) and run SCENARIO in containers
 	mkdir -p results/runs
 	chown -R $(PLATFORM_UID):$(PLATFORM_GID) results
 	$(COMPOSE_ENV) $(COMPOSE) up -d
@@ -124,9 +133,15 @@ up: images ## start the platform (coordinator API + Prometheus) and run SCENARIO
 	$(BIN)/cosim5g submit $(SCENARIO) --set runtime=docker --follow --api $(API)
 	@echo "platform still up: API $(API) (bearer token: $(TOKEN_AT); a browser: $(API)/login?token=<token>), Prometheus http://127.0.0.1:9090; 'make down' removes it"
 
+GRAFANA_IMAGE := grafana/grafana-oss:11.3.1
+dashboards: ## start Grafana (http://127.0.0.1:3000) beside the platform `make up` started; its image must be in the local cache
+	@docker image inspect $(GRAFANA_IMAGE) >/dev/null 2>&1 || { echo "no $(GRAFANA_IMAGE) in the local image cache: run 'docker pull $(GRAFANA_IMAGE)' where a registry answers (or 'docker load' it), then 'make dashboards'" >&2; exit 2; }
+	$(COMPOSE_ENV) $(COMPOSE) --profile dashboards up -d grafana
+	@echo "dashboards: http://127.0.0.1:3000 (overview, network, control, compute); Prometheus http://127.0.0.1:9090"
+
 down: ## stop the platform and remove its containers, networks and volumes (and leftovers of runs)
 	-$(COMPOSE_ENV) $(COMPOSE) down -v --remove-orphans
-	-$(BIN)/python -c "from coordinator.runtime_docker import docker_client, reap_dead_runs; reap_dead_runs(docker_client())"
+	-$(BIN)/python -c "from coordinator.docker_runs import reap_dead_runs; from coordinator.runtime_docker import docker_client; reap_dead_runs(docker_client())"
 
 calibrate: images native ## real workloads at cpus 1/0.5/0.25, process + docker: cpu-mode and wall vs ideal, 95% CIs (results/bench/)
 	$(BIN)/cosim5g calibrate --runtime both --rounds $(or $(ROUNDS),6) --jobs $(or $(CAL_JOBS),6)

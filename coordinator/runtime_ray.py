@@ -256,6 +256,10 @@ class _Session:
                                           "logging_level": logging.WARNING}
                 if address:
                     check_reachable(address)
+                else:
+                    # A cluster started here reports nothing to Ray's usage statistics (the
+                    # user's runs are theirs; the host may reach no such service anyway).
+                    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
                 try:
                     ray.init(address=address, **kwargs) if address else ray.init(**kwargs)
                 except Exception as exc:

@@ -89,6 +89,7 @@ class RayExecutor:
                 check_reachable(self.address)
                 ray.init(address=self.address, log_to_driver=False)
             else:
+                os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # a local cluster reports nothing
                 ray.init(include_dashboard=False, log_to_driver=False)
         try:
             yield

@@ -45,6 +45,15 @@ docker version --format '{{.Server.Version}}' >/dev/null 2>&1 \
   || die "Docker daemon not reachable (is it running, and may $(id -un) use it?)"
 "$PYTHON" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
   || die "$PYTHON is $("$PYTHON" -V 2>&1); need Python 3.11 to fetch wheels matching the image's python3"
+# A build run with sudo leaves the cache to the user who asked for it; one run as root before
+# (without sudo) may have left it root's: say how to take it back rather than fail half-way.
+if [[ "$(id -u)" == 0 && -n "${SUDO_UID:-}" ]]; then
+  trap 'chown -R "$SUDO_UID:${SUDO_GID:-$SUDO_UID}" "$CACHE" 2>/dev/null || true' EXIT
+fi
+for d in "$CACHE" "$CACHE/images" "$CACHE/wheelhouse" "$CACHE/wheelhouse"/*/; do
+  [[ ! -e "$d" || -w "$d" ]] \
+    || die "$d is not writable by $(id -un) (a build as root left it so): sudo chown -R $(id -u):$(id -g) $CACHE"
+done
 mkdir -p "$CACHE/images" "$CACHE/wheelhouse"
 
 # --------------------------------------------------------------------------------------------

@@ -131,7 +131,8 @@ check_docker() {
 # swrast DRI module) to render without a GPU; PyOpenGL's EGL platform loads libOpenGL.so.0 first.
 check_egl() {
   local libs missing=()
-  libs="$(ldconfig -p 2>/dev/null || true)"
+  # ldconfig is in /sbin, which a user's PATH often lacks.
+  libs="$({ command -v ldconfig >/dev/null && ldconfig -p || /sbin/ldconfig -p; } 2>/dev/null || true)"
   grep -q 'libEGL\.so\.1 ' <<<"$libs" || missing+=(libegl1)
   grep -q 'libEGL_mesa\.so\.0 ' <<<"$libs" || missing+=(libegl-mesa0)
   grep -q 'libOpenGL\.so\.0 ' <<<"$libs" || missing+=(libopengl0)
