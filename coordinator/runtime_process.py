@@ -14,10 +14,8 @@ from collections import deque
 from pathlib import Path
 
 from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
-from fabric.settings import env_name
+from fabric.metrics import PORT_ENV as METRICS_PORT_ENV
 from services.main import PARENT_PID_ENV
-
-METRICS_PORT_ENV = env_name("metrics_port")
 
 
 class ProcessLauncher(Launcher):

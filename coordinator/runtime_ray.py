@@ -27,6 +27,7 @@ from typing import Any
 
 from coordinator.conductor import RunFailed
 from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
+from fabric.metrics import PORT_ENV as METRICS_PORT_ENV
 from fabric.settings import env_name, settings
 from services.main import PARENT_PID_ENV
 from services.roles import ROLES
@@ -39,7 +40,7 @@ RAY_CPU_STEP = 1e-4
 STRATEGIES = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
 # The coordinator's settings a federate acts on; the API token, the coordinator's pid and a metrics
 # port (which every federate of a node would try to bind) stay home.
-_NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV, env_name("metrics_port")}
+_NOT_FORWARDED = {env_name("token"), env_name("token_file"), PARENT_PID_ENV, METRICS_PORT_ENV}
 ACTOR_START_TIMEOUT_S = 120.0  # a Ray worker process started and the federate's child spawned
 # A folder of a node where an actor's federate writes when the node does not see the run
 # directory: ``<tmp>/cosim5g-run-<actor pid>-<random>``.
@@ -257,9 +258,7 @@ class _Session:
                 if address:
                     check_reachable(address)
                 else:
-                    # A cluster started here reports nothing to Ray's usage statistics (the
-                    # user's runs are theirs; the host may reach no such service anyway).
-                    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+                    no_usage_stats()
                 try:
                     ray.init(address=address, **kwargs) if address else ray.init(**kwargs)
                 except Exception as exc:
@@ -572,6 +571,12 @@ class RayLauncher(Launcher):
 # How long a cluster address given as host:port may take to answer before joining it is given up
 # (Ray itself retries for minutes, printing warnings, with nothing at the address).
 CONNECT_TIMEOUT_S = 5.0
+
+
+def no_usage_stats() -> None:
+    """A local cluster about to start here reports nothing to Ray's usage statistics: the user's
+    runs are theirs, and the host may reach no such service anyway (unless the user set it)."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 
 def check_reachable(address: str) -> None:

@@ -184,10 +184,10 @@ class LearnedPolicy(Policy):
         opts.inter_op_num_threads = 1
         try:
             self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # a corrupt or incompatible file
-            raise ValueError(f"learned policy model {path} cannot be loaded ({exc}); "
+            self.input_name = self.session.get_inputs()[0].name
+        except Exception as exc:  # a corrupt or incompatible file, a network of no input
+            raise ValueError(f"learned policy model {path} cannot be loaded ({type(exc).__name__}: {exc}); "
                              f"retrain it: {TRAIN_COMMAND}") from None
-        self.input_name = self.session.get_inputs()[0].name
         self.pdp_levels = tuple(float(p) for p in self.info["pdp_levels"])
         self.budget_levels_ms = tuple(float(b) for b in self.info["budget_levels_ms"])
         self._probe()

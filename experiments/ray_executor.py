@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from coordinator.run_state import RunState
-from coordinator.runtime_ray import check_reachable, short_error
+from coordinator.runtime_ray import check_reachable, no_usage_stats, short_error
 from experiments.point_runs import PointOutcome, PointTask, run_process
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ class RayExecutor:
                 check_reachable(self.address)
                 ray.init(address=self.address, log_to_driver=False)
             else:
-                os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # a local cluster reports nothing
+                no_usage_stats()
                 ray.init(include_dashboard=False, log_to_driver=False)
         try:
             yield

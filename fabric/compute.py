@@ -130,7 +130,7 @@ def __getattr__(name: str) -> Any:
 
 def draw_model_us(dist: JobModel, rng: np.random.Generator) -> int:
     """A job's duration in ``model`` timing, simulated microseconds (at least 1): a draw from
-    ``rng`` of the normal distribution ``dist`` (``mean_us``, ``sd_us``), truncated at a tenth of
+    ``rng`` of the normal distribution ``dist`` (``mean_us``, ``sd_us``), clipped at a tenth of
     the mean."""
     draw = rng.normal(dist.mean_us, dist.sd_us) if dist.sd_us else dist.mean_us
     return max(1, int(round(max(draw, dist.mean_us * 0.1))))

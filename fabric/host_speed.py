@@ -223,7 +223,7 @@ def _read_cache(path: Path, env: dict[str, str]) -> HostScore | None:
         # Every job's duration is scaled by the score: one no measurement gives (not a positive
         # number, or far from any core's) or from the future would silently change every result.
         ref = reference().score
-        if (data["env"] != env or not timedelta(days=-1) <= age <= timedelta(days=CACHE_MAX_AGE_DAYS)
+        if (data["env"] != env or not timedelta(minutes=-5) <= age <= timedelta(days=CACHE_MAX_AGE_DAYS)
                 or not math.isfinite(score) or not ref / PLAUSIBLE_SPREAD <= score <= ref * PLAUSIBLE_SPREAD):
             return None
         return HostScore(score=score, components_ms=dict(data["components_ms"]),

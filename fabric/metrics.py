@@ -17,6 +17,9 @@ from prometheus_client import Counter, Gauge, Histogram, start_http_server
 from fabric.settings import env_name, settings
 
 log = logging.getLogger(__name__)
+# The port a federate serves its metrics on: a runtime whose federates share a host never passes
+# it on (the docker runtime gives each container its own).
+PORT_ENV = env_name("metrics_port")
 
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
@@ -81,6 +84,6 @@ def serve_from_env() -> int | None:
     try:
         start_http_server(port)
     except OSError as exc:  # metrics are for watching: a taken port must not end the run
-        log.warning("metrics not served: cannot listen on %s=%d: %s", env_name("metrics_port"), port, exc)
+        log.warning("metrics not served: cannot listen on %s=%d: %s", PORT_ENV, port, exc)
         return None
     return port

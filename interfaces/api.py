@@ -81,7 +81,8 @@ def scenario_limit_errors(sc: Scenario, limits: Settings) -> list[tuple[str, str
 
 def document_refusals(schema: dict[str, Any]) -> dict[str, Any]:
     """The OpenAPI schema as the app answers: /healthz needs no token (the app-wide dependency
-    marks every route), every other operation may answer 401, the two that queue work 429, and a
+    marks every route), every other operation may answer 401, a POST 403 (the cookie alone from
+    another origin), the two that queue work 429, and a
     422 lists either the framework's items (loc, msg, type) or the scenario and sweep checks'
     (field, message)."""
     detail = {"type": "object", "required": ["detail"], "properties": {"detail": {"type": "string"}}}
@@ -92,6 +93,10 @@ def document_refusals(schema: dict[str, Any]) -> dict[str, Any]:
                 continue
             op["responses"]["401"] = {"description": "missing or wrong API token",
                                       "content": {"application/json": {"schema": detail}}}
+            if method == "post":
+                op["responses"]["403"] = {"description": "authorised by the login cookie alone from "
+                                          "another origin (send the bearer header)",
+                                          "content": {"application/json": {"schema": detail}}}
             if method == "post" and path in ("/runs", "/sweeps"):
                 op["responses"]["429"] = {"description": "too much work queued (the limit max_queued)",
                                           "content": {"application/json": {"schema": detail}}}

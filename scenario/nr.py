@@ -22,6 +22,18 @@ CALIBRATED_N_PRB = 468
 CALIBRATED_UL_CAPACITY_MBPS = 178.6
 
 
+# Integers at or beyond this travel in no message (msgpack carries 64 bits) and are no longer
+# exact as floats: no field of any scenario section means anything there.
+INT_LIMIT = 2**53
+
+
+def bounded_int(v: Any) -> Any:
+    """``v``, or ValueError if it is an integer of INT_LIMIT or more (a validator of every field)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= INT_LIMIT:
+        raise ValueError(f"{v:.3g} is too large: integers here are below 2**53")
+    return v
+
+
 class NrConfig(BaseModel):
     """Every parameter of ``NrCell``; units are in the field names."""
 
@@ -29,10 +41,8 @@ class NrConfig(BaseModel):
 
     @field_validator("*", mode="after")
     @classmethod
-    def _bounded_ints(cls, v: Any) -> Any:  # as scenario.schema.Strict's (which imports this module)
-        if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 2**53:
-            raise ValueError(f"{v:.3g} is too large: integers here are below 2**53")
-        return v
+    def _bounded_ints(cls, v: Any) -> Any:
+        return bounded_int(v)
 
     # --- carrier and numerology -------------------------------------------------------------
     carrier_frequency_hz: float = Field(

@@ -18,11 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from scenario.lattice import GNB_COUNTS, lattice_points_m, lattice_subset
-from scenario.nr import NrConfig
-
-# Integers at or beyond this travel in no message (msgpack carries 64 bits) and are no longer
-# exact as floats: no field means anything there.
-INT_LIMIT = 2**53
+from scenario.nr import NrConfig, bounded_int
 
 
 class Strict(BaseModel):
@@ -31,14 +27,13 @@ class Strict(BaseModel):
 
     @field_validator("*", mode="after")
     @classmethod
-    def _bounded_ints(cls, v: Any) -> Any:
-        if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= INT_LIMIT:
-            raise ValueError(f"{v:.3g} is too large: integers here are below 2**53")
-        return v
+    def _bounded_ints(cls, v: Any) -> Any:  # as NrConfig's: integers below 2**53
+        return bounded_int(v)
 
 
 class JobModel(Strict):
-    """Distribution of a job's emulated duration in ``model`` timing (a normal, truncated)."""
+    """Distribution of a job's emulated duration in ``model`` timing (a normal, clipped at a tenth
+    of its mean)."""
 
     mean_us: int = Field(gt=0, description="mean emulated duration, microseconds")
     sd_us: int = Field(default=0, ge=0, description="standard deviation, microseconds")
@@ -186,16 +181,20 @@ class HallConfig(Strict):
     def _gnbs_in_hall(self) -> HallConfig:
         layout = self.inf_layout
         size = f"0..{self.length_m:g} x 0..{self.width_m:g} x 0..{self.height_m:g} m"
+
+        def inside(x: float, y: float, z: float) -> bool:
+            return 0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m
+
         if layout is None:
             if self.work_cell_fill == "gnbs":
                 raise ValueError("hall.work_cell_fill = gnbs places the work cells around several "
                                  "gNBs: set hall.inf_layout, or work_cell_fill = centre")
-            x, y, z = self.gnb_position_m
-            if not (0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m):
+            if not inside(*self.gnb_position_m):
+                x, y, z = self.gnb_position_m
                 raise ValueError(f"hall.gnb_position_m = ({x:g}, {y:g}, {z:g}) is outside the hall ({size})")
             return self
         for i, (x, y, z) in enumerate(layout.gnb_positions_m or ()):
-            if not (0 <= x <= self.length_m and 0 <= y <= self.width_m and 0 <= z <= self.height_m):
+            if not inside(x, y, z):
                 raise ValueError(
                     f"hall.inf_layout.gnb_positions_m[{i}] = ({x:g}, {y:g}, {z:g}) m lies outside "
                     f"the hall ({size}): every gNB must stand inside it")
@@ -864,7 +863,8 @@ def _format_validation(exc: ValidationError) -> list[tuple[str, str]]:
         if err["type"] == "extra_forbidden":
             allowed = _allowed_fields(err["loc"][:-1])
             msg = f"unknown field; allowed here: {', '.join(allowed)}" if allowed else "unknown field"
-        elif err["loc"] and "input" in err and err["type"] != "missing" and not isinstance(err["input"], dict):
+        elif err["loc"] and "input" in err and err["type"] != "missing" and not (
+                err["type"] == "value_error" and isinstance(err["input"], dict)):
             # A section's own check names its values; the whole section given says nothing more.
             msg = f"{msg} (given: {_given(err['input'])})"
         out.append((loc, msg))
