@@ -52,7 +52,10 @@ def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISOD
 
 def at_lambda(result: dict[str, Any], lam: float) -> dict[str, Any]:
     """``result`` of ``run_episodes`` with its returns as the reward of ``lam`` prices them: a
-    return is ``lam`` x (placed - missed - dropped) - cost, and only ``lam`` differs."""
+    return is ``lam`` x (placed - missed - dropped) - cost, and only ``lam`` differs. A result of
+    that lambda already (or of none named: a policy's own evaluation) keeps its returns as summed."""
+    if result.get("lambda", lam) == lam:
+        return {**result, "lambda": lam}
     rows = [{**r, "return": lam * (r["placed"] - r["missed"] - r["dropped"]) - r["cost"]} for r in result["rows"]]
     return {**result, "lambda": lam, **pool(rows), "rows": rows}
 
