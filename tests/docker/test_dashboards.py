@@ -109,7 +109,10 @@ def platform(docker_client: Any, tmp_path_factory: pytest.TempPathFactory) -> An
 def test_every_panel_query_returns_series_after_a_docker_smoke_run(platform: str) -> None:
     token = platform
     t0 = time.time()
-    run_id = _post(f"{API}/runs", {"scenario": "smoke", "overrides": ["runtime=docker", "duration_s=8"]},
+    # A co-design policy, so that the Edge's load control (fill, cap, loops served) has series:
+    # PDP 1 runs none, and a series exists only where one runs.
+    run_id = _post(f"{API}/runs", {"scenario": "smoke",
+                                   "overrides": ["runtime=docker", "duration_s=8", "policy.name=heuristic"]},
                    token)["run_id"]
     deadline = time.monotonic() + 900
     while time.monotonic() < deadline:
