@@ -90,9 +90,10 @@ class LoopsFederate(Federate):
         self.kin = ArmKinematics()  # the arms' IK, all at once (every arm has the same model and base)
         self.loops: dict[int, AbstractLoop] = {}
         # With `shared` Edge compute, one node per Edge for all its abstract loops.
+        share_edge = sc.edge.abstract_compute == "shared"
         shared: dict[str, ComputeNode] = {}
         for i in range(sc.detailed_loops, sc.loops):
-            if sc.edge.abstract_compute == "shared":
+            if share_edge:
                 name = self.edges[i].name
                 if name not in shared:
                     shared[name] = ComputeNode(f"edge-{name}", modelled(nodes.edge), self.rng(f"edge/{name}/compute"))
@@ -112,7 +113,7 @@ class LoopsFederate(Federate):
                 robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
             )
             lp = self.loops[i]
-            self.record_jobs(lp.camera_cpu, *(() if shared else (lp.edge_cpu,)), lp.robot_cpu)
+            self.record_jobs(lp.camera_cpu, *(() if share_edge else (lp.edge_cpu,)), lp.robot_cpu)
         self.schedule(0, self._control_tick)
         self.next_tick_us = 0  # when ``_control_tick``, its only sender of commands, runs next
         self.schedule(0, self._policy_tick)
