@@ -1,5 +1,6 @@
-"""What the Edge can know of its radio cell's load, from the frames it receives: each loop's
-uplink frame delay and loss, the cell's queueing delay, and the load control built on them:
+"""What the Edge can know of its radio cell's load (and its own CPU's), from the frames it
+receives and estimates: each loop's frame delay and loss, the queueing delay over its loops, and
+the load control built on them:
 every loop gets PDP 1 while the cell has headroom, and a cap holds the injected traffic near
 what the cell delivers past its capacity (docs/policy.md, "Load control").
 """
@@ -99,8 +100,8 @@ def served_rank(loop: int) -> float:
 
 @dataclass(frozen=True)
 class LinkEstimate:
-    """The uplink as one loop's Edge sees it: ``delay_s`` smoothed capture-to-arrival delay of
-    its frames (s), ``loss`` smoothed share of its frames that started to arrive and never
+    """The uplink as one loop's Edge sees it: ``delay_s`` smoothed capture-to-estimate delay of
+    its frames (s: the frame's arrival and the Edge's estimation of it), ``loss`` smoothed share of its frames that started to arrive and never
     completed; ``cell_queueing_s`` and ``cell_loss`` the queueing delay (delay above each loop's
     smallest, s) and loss over every loop of the Edge: the cell's load."""
 
@@ -128,9 +129,9 @@ class UplinkMonitor:
     """Smoothed uplink delay and loss of the frames an Edge receives, per loop and cell-wide.
 
     The cell's load shows as queueing delay: a frame's delay above the smallest its loop has
-    seen (the base delay: capture, compression, an empty cell's transmission), as delay-based
-    congestion control (LEDBAT, RFC 6817) measures it. ``frame`` and ``lost`` are called as
-    frames complete or are given up; ``period`` once per policy period folds that period's
+    seen (the base delay: capture, compression, an empty cell's transmission, the estimation),
+    as delay-based congestion control (LEDBAT, RFC 6817) measures it. ``frame`` is called as a
+    frame's estimate is ready, so that the Edge's own compute queue shows as the cell's does; ``period`` once per policy period folds that period's
     frames into the cell-wide figures (a period with no frame keeps them). A frame that
     ``started`` to arrive and has not completed LOST_AFTER_US later is counted ``lost``.
 
@@ -183,8 +184,9 @@ class UplinkMonitor:
 
     def frame(self, loop: int, capture_us: int, arrival_us: int, seq: int | None = None) -> None:
         """Sent frame ``seq`` of ``loop`` (None: not numbered, no gap is looked for) captured at
-        ``capture_us`` (us) complete at the Edge at ``arrival_us`` (us) (a frame already
-        counted lost counts as arrived too: it was late)."""
+        ``capture_us`` (us) estimated at the Edge at ``arrival_us`` (us: its last packet in
+        and its estimation done) (a frame already counted lost counts as arrived too: it was
+        late)."""
         if seq is not None:
             self._seen(loop, seq, arrival_us)
             self._partial.pop((loop, seq), None)

@@ -85,7 +85,6 @@ class EdgeFederate(Federate):
         part["chunks"][frame.idx] = blob or b""
         if len(part["chunks"]) == part["n"]:
             del self.partial[key]
-            self.edges[key[0]].monitor.frame(key[0], part["capture_us"], self.now, part["seq"])
             data = b"".join(part["chunks"][i] for i in range(part["n"]))
             detections, ready = self.cpu.run("pose", self.now, self._estimate, data)
             self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],
@@ -93,7 +92,7 @@ class EdgeFederate(Federate):
                                 "estimator": self.estimator.name, "lost": False})
             self.frames_estimated += 1
             self.detections += len(detections)
-            self.schedule(ready, self._publish, key[0], part["capture_us"], detections)
+            self.schedule(ready, self._publish, key[0], part["capture_us"], part["seq"], detections)
         self._drop_stale_partials()
 
     def _estimate(self, data: bytes) -> list[Detection]:
@@ -108,7 +107,10 @@ class EdgeFederate(Federate):
                                 "estimator": self.estimator.name, "lost": True})
             self.frames_incomplete += 1
 
-    def _publish(self, loop: int, capture_us: int, detections: list[Detection]) -> None:
+    def _publish(self, loop: int, capture_us: int, seq: int, detections: list[Detection]) -> None:
+        # The frame counts for the load as its estimate is ready: queueing for the Edge's CPU
+        # delays it as the cell's queues do (docs/policy.md, "The load as the Edge sees it").
+        self.edges[loop].monitor.frame(loop, capture_us, self.now, seq)
         tracks = update_tracks(self.trackers[loop], capture_us, [d.p for d in detections])
         if tracks is None:
             return

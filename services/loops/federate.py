@@ -205,16 +205,18 @@ class LoopsFederate(Federate):
             return
         lp.arrived.pop(fid, None)
         capture_us, objects = lp.truth.pop(fid)
-        self.edges[lp.index].monitor.frame(lp.index, capture_us, self.now, fid)
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
             lp.arrived.pop(old, None)
         positions = self.frame_model.estimate(objects, lp.error_rng)
         _, ready = lp.edge_cpu.run("pose", self.now, int, 0)
-        self.schedule(ready, self._publish, lp.index, capture_us, positions)
+        self.schedule(ready, self._publish, lp.index, capture_us, fid, positions)
 
-    def _publish(self, loop: int, capture_us: int, positions: list[np.ndarray]) -> None:
+    def _publish(self, loop: int, capture_us: int, fid: int, positions: list[np.ndarray]) -> None:
         lp = self.loops[loop]
+        # The frame counts for the load as its estimate is ready: queueing for the Edge's CPU
+        # delays it as the cell's queues do (docs/policy.md, "The load as the Edge sees it").
+        self.edges[loop].monitor.frame(loop, capture_us, self.now, fid)
         tracks = update_tracks(lp.tracker, capture_us, positions)
         if tracks is None:
             return

@@ -80,3 +80,21 @@ def test_the_abstract_loops_of_an_edge_queue_on_one_node_when_its_compute_is_sha
     assert queues["per_loop"][0] == {"edge"} and queues["per_loop"][1] < 1_000
     [node] = queues["shared"][0]
     assert node.startswith("edge-") and queues["shared"][1] > 100_000, queues
+
+
+def test_the_load_control_reads_a_shared_edges_compute_queue(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    # The eight loops above with a co-design policy: their frames count for the load as their
+    # estimates are ready, so the pose queue shows as queueing delay and the cap comes down until
+    # the node keeps up, where PDP 1 lets the queue grow for the whole run.
+    sets = ["loops=8", "detailed_loops=0", "duration_s=3", "policy.name=heuristic", "nodes.edge.cpus=0.5",
+            "edge.abstract_compute=shared", *MODEL_TIMING_SETS]
+    result = execute_run(load_scenario(SMOKE, sets), tmp_path)
+    assert result.status == "completed", result.reason
+    edge = result.kpis["federates"]["loops"]["edges"]["edges"]["gnb0"]
+    jobs = pq.read_table(result.run_dir / "jobs.parquet").to_pylist()
+    late = [j["queue_us"] for j in jobs if j["kind"] == "pose" and j["start_us"] > 2_000_000]
+    print(edge["cap"], edge["mean_cap"], max(late), len(late))
+    assert edge["cap"] < 0.8, edge
+    assert late and max(late) < 100_000, max(late)

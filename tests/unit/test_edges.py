@@ -195,9 +195,11 @@ def test_a_central_edge_gets_each_frame_and_sends_each_packet_a_backhaul_later(t
     per, per_sent = run_loops(hall_scenario(), tmp_path / "per", gnbs, 60_000)
     central, central_sent = run_loops(hall_scenario(placement="central", backhaul_ms=1.0),
                                       tmp_path / "central", gnbs, 60_000)
-    # Uplink: the frame reaches the central Edge 1 ms after netsim delivered it at 60 ms.
-    assert per.edges[0].monitor.delay_s[0] == pytest.approx(0.060)
-    assert central.edges[0].monitor.delay_s[0] == pytest.approx(0.061)
+    # Uplink: the frame reaches the central Edge 1 ms after netsim delivered it at 60 ms; it
+    # counts for the load as its estimate is ready, the pose job (the same draw) later.
+    delay_s = per.edges[0].monitor.delay_s[0]
+    assert 0.060 < delay_s < 0.080
+    assert central.edges[0].monitor.delay_s[0] == pytest.approx(delay_s + 0.001)
     # Downlink: the policy's first QoS (decided at 0) enters the gNB 1 ms later; the pose,
     # estimated 1 ms later, enters 2 ms later.
     qos = downlinks(per_sent, "camera-0/qos")

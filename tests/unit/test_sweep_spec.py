@@ -51,6 +51,12 @@ def test_shipped_specs_load_and_expand() -> None:
     assert len(fast) == 4 * 3 * 9 * 3
     assert {p.scenario.camera.frame_keep for p in fast} == {"bernoulli", "spaced"}
     assert {p.scenario.work_cell.first_object_spread_s for p in fast} == {0.0, 4.0, 6.0}
+    shared = expand(load_spec(ROOT / "configs" / "sweeps" / "shared_edge.yaml", SCENARIOS), SCENARIOS)
+    assert len(shared) == 3 * 12 * 3
+    assert {p.scenario.edge.abstract_compute for p in shared} == {"shared"}
+    every = {f.stem for f in (ROOT / "configs" / "sweeps").glob("*.yaml")}
+    for name in sorted(every - {"quick", "reproduce", "fast_cells", "shared_edge"}):
+        assert expand(load_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml", SCENARIOS), SCENARIOS), name
 
 
 def test_co_design_keeps_frames_spaced_where_its_results_were_not_measured_otherwise() -> None:

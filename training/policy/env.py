@@ -204,10 +204,10 @@ class PickLoopEnv(gym.Env):
             elif kind == "frame":
                 self._capture(t)
                 self._push(t + self.frame_us, 1, "frame", None)
-            elif kind == "arrival":
-                self.codesign.monitor.frame(0, payload, t)
             elif kind == "edge":
                 capture_us, positions = payload
+                # Counted for the load as its estimate is ready, as at the federation's Edge.
+                self.codesign.monitor.frame(0, capture_us, t)
                 tracks = update_tracks(self.tracker, capture_us, positions)
                 if tracks is not None:
                     self.last_frame_us = capture_us
@@ -247,7 +247,6 @@ class PickLoopEnv(gym.Env):
             return
         self.stats["frames_delivered"] += 1
         positions = self.frame_model.estimate(self.world.objects(0), self.rng["error"])
-        self._push(enter + latency, 2, "arrival", t)
         self._push(enter + latency + self._job_us("pose"), 2, "edge", (t, positions))
 
 
