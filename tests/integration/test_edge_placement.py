@@ -95,6 +95,5 @@ def test_the_load_control_reads_a_shared_edges_compute_queue(tmp_path: Path) -> 
     edge = result.kpis["federates"]["loops"]["edges"]["edges"]["gnb0"]
     jobs = pq.read_table(result.run_dir / "jobs.parquet").to_pylist()
     late = [j["queue_us"] for j in jobs if j["kind"] == "pose" and j["start_us"] > 2_000_000]
-    print(edge["cap"], edge["mean_cap"], max(late), len(late))
     assert edge["cap"] < 0.8, edge
     assert late and max(late) < 100_000, max(late)
