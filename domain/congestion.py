@@ -17,6 +17,8 @@ LOOP_ALPHA = 0.1
 # Smoothing of the cell-wide queueing delay and loss, per policy period: about the last half
 # second weighs.
 CELL_ALPHA = 0.3
+# "Complete" below: estimated at the Edge (its last packet in, then its pose job; 4-8 ms at the
+# default Edge profiles, 35 ms or more below about 0.12 cpu, which then eats into STALL_US).
 # A frame that started to arrive and is still incomplete this long after is counted lost (below
 # capacity a frame completes within tens of ms of its first packet), and so is a frame the camera
 # sent that has not started to arrive this long after a later one did (its packets were
@@ -25,9 +27,10 @@ CELL_ALPHA = 0.3
 LOST_AFTER_US = 250_000
 # A frame expected (started to arrive, or shown sent) and still incomplete this long after has
 # stalled: below capacity a frame's packets all arrive within 20 ms of its first (17 ms at most
-# at 16 loops of a 0.5 m/s cell). Stalled frames show an overload within a period or two of its
-# onset, where the loss shows only LOST_AFTER_US later and the delay only of frames that complete
-# (in overload hardly any); the slow start ends on them (below).
+# at 16 loops of a 0.5 m/s cell), its estimate a pose job later. Stalled frames show an overload
+# within a period or two of its onset, where the loss shows only LOST_AFTER_US later and the
+# delay only of frames that complete (in overload hardly any); the slow start ends on them
+# (below).
 STALL_US = 50_000
 # The cap also takes the cell as past capacity when more than this share of the frames the
 # cameras sent never complete (discarded late, overflowed or failed HARQ, whole or in part): deep
@@ -101,9 +104,10 @@ def served_rank(loop: int) -> float:
 @dataclass(frozen=True)
 class LinkEstimate:
     """The uplink as one loop's Edge sees it: ``delay_s`` smoothed capture-to-estimate delay of
-    its frames (s: the frame's arrival and the Edge's estimation of it), ``loss`` smoothed share of its frames that started to arrive and never
-    completed; ``cell_queueing_s`` and ``cell_loss`` the queueing delay (delay above each loop's
-    smallest, s) and loss over every loop of the Edge: the cell's load."""
+    its frames (s: the frame's arrival and the Edge's estimation of it), ``loss`` smoothed share
+    of its frames that started to arrive and were never estimated; ``cell_queueing_s`` and
+    ``cell_loss`` the queueing delay (delay above each loop's smallest, s) and loss over every
+    loop of the Edge: the load of the cell and of the Edge's CPU."""
 
     delay_s: float = 0.0
     loss: float = 0.0
@@ -131,9 +135,10 @@ class UplinkMonitor:
     The cell's load shows as queueing delay: a frame's delay above the smallest its loop has
     seen (the base delay: capture, compression, an empty cell's transmission, the estimation),
     as delay-based congestion control (LEDBAT, RFC 6817) measures it. ``frame`` is called as a
-    frame's estimate is ready, so that the Edge's own compute queue shows as the cell's does; ``period`` once per policy period folds that period's
-    frames into the cell-wide figures (a period with no frame keeps them). A frame that
-    ``started`` to arrive and has not completed LOST_AFTER_US later is counted ``lost``.
+    frame's estimate is ready, so that the Edge's own compute queue shows as the cell's does,
+    ``lost`` as a frame is given up; ``period`` once per policy period folds that period's frames
+    into the cell-wide figures (a period with no frame keeps them). A frame that ``started`` to
+    arrive and has no estimate LOST_AFTER_US later is counted ``lost``.
 
     Frames are known by their loop's sent-frame sequence number (``seq``: 0, 1, 2, ... over the
     frames its camera sent; a frame the camera dropped on purpose, PDP, takes none). A frame

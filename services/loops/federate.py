@@ -198,9 +198,10 @@ class LoopsFederate(Federate):
         if fid not in lp.truth:  # given up for lost (LOST_FRAME_US)
             return
         got = lp.arrived.get(fid, 0) + count
+        if fid not in lp.arrived:
+            # Started also when it is whole at once: it may still wait for the Edge's CPU.
+            self.edges[lp.index].monitor.started(lp.index, fid, self.now)
         if got < n:
-            if fid not in lp.arrived:
-                self.edges[lp.index].monitor.started(lp.index, fid, self.now)
             lp.arrived[fid] = got
             return
         lp.arrived.pop(fid, None)
