@@ -124,7 +124,7 @@ def test_bad_sweep_requests_are_refused_with_the_field_named(finished_sweep: Any
     assert status == 422 and body["detail"][0]["field"] == "grid.loops"
     assert server.api("GET", "/sweeps/specs")[1] == ["codesign", "codesign_family", "factory_gnbs", "family",
                                                       "fast_cells", "overload", "quick", "reproduce",
-                                                      "sensitivity", "sensitivity_detailed"]
+                                                      "sensitivity", "sensitivity_detailed", "shared_edge"]
 
 
 def test_results_page_in_a_real_browser(finished_sweep: Any, tmp_path: Path) -> None:
