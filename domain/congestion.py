@@ -187,16 +187,16 @@ class UplinkMonitor:
             else:
                 self._partial.setdefault(key, now_us)
 
-    def frame(self, loop: int, capture_us: int, arrival_us: int, seq: int | None = None) -> None:
+    def frame(self, loop: int, capture_us: int, estimated_us: int, seq: int | None = None) -> None:
         """Sent frame ``seq`` of ``loop`` (None: not numbered, no gap is looked for) captured at
-        ``capture_us`` (us) estimated at the Edge at ``arrival_us`` (us: its last packet in
-        and its estimation done) (a frame already counted lost counts as arrived too: it was
+        ``capture_us`` (us) estimated at the Edge at ``estimated_us`` (us: its last packet in
+        and its estimation done) (a frame already counted lost counts as estimated too: it was
         late)."""
         if seq is not None:
-            self._seen(loop, seq, arrival_us)
+            self._seen(loop, seq, estimated_us)
             self._partial.pop((loop, seq), None)
             self._unstarted.discard((loop, seq))
-        d = max(0, arrival_us - capture_us) / 1e6
+        d = max(0, estimated_us - capture_us) / 1e6
         last = self.delay_s.get(loop, d)
         self.delay_s[loop] = last + LOOP_ALPHA * (d - last)
         self.loss[loop] = self.loss.get(loop, 0.0) * (1 - LOOP_ALPHA)

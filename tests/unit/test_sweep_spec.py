@@ -54,9 +54,8 @@ def test_shipped_specs_load_and_expand() -> None:
     shared = expand(load_spec(ROOT / "configs" / "sweeps" / "shared_edge.yaml", SCENARIOS), SCENARIOS)
     assert len(shared) == 3 * 12 * 3
     assert {p.scenario.edge.abstract_compute for p in shared} == {"shared"}
-    every = {f.stem for f in (ROOT / "configs" / "sweeps").glob("*.yaml")}
-    for name in sorted(every - {"quick", "reproduce", "fast_cells", "shared_edge"}):
-        assert expand(load_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml", SCENARIOS), SCENARIOS), name
+    # The other shipped specs expand in the test below, but for this one.
+    assert expand(load_spec(ROOT / "configs" / "sweeps" / "factory_gnbs.yaml", SCENARIOS), SCENARIOS)
 
 
 def test_co_design_keeps_frames_spaced_where_its_results_were_not_measured_otherwise() -> None:
