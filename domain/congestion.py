@@ -205,6 +205,13 @@ class UplinkMonitor:
         self._sum_s += d - base
         self._n += 1
 
+    def dropped(self, loop: int, seq: int) -> None:
+        """Sent frame ``seq`` of ``loop``, complete, dropped at the Edge without an estimate (a
+        newer frame of the loop took its place while it waited for the CPU): lost, counted now."""
+        if self._partial.pop((loop, seq), None) is not None:
+            self._unstarted.discard((loop, seq))
+            self.lost(loop)
+
     def lost(self, loop: int) -> None:
         """A frame of ``loop`` sent and never (completely) received."""
         self.loss[loop] = self.loss.get(loop, 0.0) + LOOP_ALPHA * (1.0 - self.loss.get(loop, 0.0))

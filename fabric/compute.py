@@ -437,6 +437,12 @@ class ComputeNode:
             self._probe(0)
 
     @property
+    def free_us(self) -> int:
+        """When the node's first core is free, simulated microseconds: a job arriving then or
+        later starts as it arrives."""
+        return min(self._free_at)
+
+    @property
     def threads(self) -> int:
         """Threads a job's library pools may use: the node's emulated cores."""
         return self.cores

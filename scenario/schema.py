@@ -422,6 +422,12 @@ class EdgeConfig(Strict):
         "another's (an Edge that grows with its loops: the radio cell is what limits them); "
         "`shared`, every abstract loop of an Edge on that Edge's one node, queueing as the detailed "
         "loops do in the Edge federate (the Edge's compute limits them too)")
+    pose_queue: Literal["fifo", "newest"] = Field(
+        default="fifo", description="which frames an Edge estimates when its CPU falls behind: "
+        "`fifo`, every complete frame, in the order they came in, however long it waits; `newest`, "
+        "at most one frame per loop waits for the CPU, a newer one taking its place (the older "
+        "dropped, counted as lost), as a pipeline that keeps each camera's latest image "
+        "(docs/compute.md, \"Which frames a busy Edge estimates\")")
 
 
 class PolicyConfig(Strict):

@@ -20,6 +20,7 @@ from domain.tracker import Tracker
 from domain.work_cell import CameraIntrinsics
 from fabric.compute import ComputeNode
 from fabric.federate import Federate, Handlers
+from fabric.job_queue import JobQueue
 from fabric.messages import Message
 from wire.bodies import EdgeCounts, Frame, Payload, Pose
 
@@ -32,6 +33,7 @@ class EdgeFederate(Federate):
     def setup(self) -> None:
         sc = self.scenario
         self.cpu = ComputeNode(self.name, sc.nodes.edge, self.rng("compute"))
+        self.poses = JobQueue(self.cpu, "pose", sc.edge.pose_queue, self.schedule, self._superseded)
         self.record_jobs(self.cpu)
         self.route = load_route(sc, self.results_dir)  # the netsim (partition) of each radio
         k = CameraIntrinsics(sc.camera.width_px, sc.camera.height_px, sc.camera.fovy_deg)
@@ -53,6 +55,7 @@ class EdgeFederate(Federate):
         self.frames = self.table("frames")
         self.frames_estimated = 0
         self.frames_incomplete = 0
+        self.frames_superseded = 0
         self.detections = 0
         cv2.setNumThreads(self.cpu.threads)  # OpenCV at the node's cores: one where cpus <= 1
         if self.loops:
@@ -86,14 +89,26 @@ class EdgeFederate(Federate):
         if len(part["chunks"]) == part["n"]:
             del self.partial[key]
             data = b"".join(part["chunks"][i] for i in range(part["n"]))
-            detections, ready = self.cpu.run("pose", self.now, self._estimate, data)
-            self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": part["capture_us"],
-                                "complete_us": self.now, "ready_us": ready, "detections": len(detections),
-                                "estimator": self.estimator.name, "lost": False})
-            self.frames_estimated += 1
-            self.detections += len(detections)
-            self.schedule(ready, self._publish, key[0], part["capture_us"], part["seq"], detections)
+            self.poses.submit(self.now, frame.loop, self._estimate, (data,), self._estimated,
+                              (*key, part["capture_us"], part["seq"], self.now))
         self._drop_stale_partials()
+
+    def _estimated(self, loop: int, frame_id: int, capture_us: int, seq: int, complete_us: int,
+                   detections: list[Detection], ready_us: int) -> None:
+        self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
+                            "complete_us": complete_us, "ready_us": ready_us, "detections": len(detections),
+                            "estimator": self.estimator.name, "lost": False})
+        self.frames_estimated += 1
+        self.detections += len(detections)
+        self.schedule(ready_us, self._publish, loop, capture_us, seq, detections)
+
+    def _superseded(self, loop: int, frame_id: int, capture_us: int, seq: int, complete_us: int) -> None:
+        # Complete, never estimated: a row with no ready time, as lost.
+        self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
+                            "complete_us": complete_us, "ready_us": None, "detections": 0,
+                            "estimator": self.estimator.name, "lost": True})
+        self.frames_superseded += 1
+        self.edges[loop].monitor.dropped(loop, seq)
 
     def _estimate(self, data: bytes) -> list[Detection]:
         rgb, depth = decode_frame(data)
@@ -149,6 +164,7 @@ class EdgeFederate(Federate):
     def finish(self, reason: str) -> dict[str, Any]:
         done = self.frames_estimated
         return {"frames_estimated": done, "frames_incomplete": self.frames_incomplete,
+                "frames_superseded": self.frames_superseded,
                 "compute_speed": self.cpu.speed_summary(self.now),
                 "estimator": self.estimator.name, "estimator_requested": self.scenario.edge.estimator,
                 "estimator_fallback_reason": self.estimator_fallback or "",

@@ -25,6 +25,7 @@ from domain.policy import Qos
 from domain.tracker import Tracker
 from fabric.compute import ComputeNode
 from fabric.federate import NEVER_US, Federate, Handlers
+from fabric.job_queue import JobQueue
 from fabric.messages import Message
 from fabric.tables import write_table
 from wire.bodies import (
@@ -56,6 +57,7 @@ class AbstractLoop:
     error_rng: np.random.Generator
     camera_cpu: ComputeNode
     edge_cpu: ComputeNode
+    poses: JobQueue  # the frames waiting for edge_cpu's pose estimation
     robot_cpu: ComputeNode
     pdp: float = 1.0
     pdb_us: int | None = None
@@ -65,6 +67,7 @@ class AbstractLoop:
     last_frame_us: int | None = None
     frames: int = 0
     frames_kept: int = 0
+    frames_superseded: int = 0  # complete, replaced by a newer one before the Edge estimated them
     bytes_sent: int = 0
 
 
@@ -91,16 +94,21 @@ class LoopsFederate(Federate):
         self.loops: dict[int, AbstractLoop] = {}
         # With `shared` Edge compute, one node per Edge for all its abstract loops.
         share_edge = sc.edge.abstract_compute == "shared"
-        shared: dict[str, ComputeNode] = {}
+        shared: dict[str, JobQueue] = {}
+
+        def pose_queue(node: ComputeNode) -> JobQueue:
+            return JobQueue(node, "pose", sc.edge.pose_queue, self.schedule, self._superseded)
+
         for i in range(sc.detailed_loops, sc.loops):
             if share_edge:
                 name = self.edges[i].name
                 if name not in shared:
-                    shared[name] = ComputeNode(f"edge-{name}", modelled(nodes.edge), self.rng(f"edge/{name}/compute"))
-                    self.record_jobs(shared[name])
-                edge_cpu = shared[name]
+                    node = ComputeNode(f"edge-{name}", modelled(nodes.edge), self.rng(f"edge/{name}/compute"))
+                    shared[name] = pose_queue(node)
+                    self.record_jobs(node)
+                poses = shared[name]
             else:
-                edge_cpu = ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute"))
+                poses = pose_queue(ComputeNode("edge", modelled(nodes.edge), self.rng(f"edge-{i}/compute")))
             self.loops[i] = AbstractLoop(
                 index=i,
                 ctl=PickController(sc.robot, sc.work_cell.object_size_m, SERVO_LAG_S),
@@ -109,7 +117,8 @@ class LoopsFederate(Federate):
                 size_rng=self.rng(f"camera-{i}/size"),
                 error_rng=self.rng(f"edge-{i}/error"),
                 camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),
-                edge_cpu=edge_cpu,
+                edge_cpu=poses.node,
+                poses=poses,
                 robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
             )
             lp = self.loops[i]
@@ -209,9 +218,16 @@ class LoopsFederate(Federate):
         for old in [f for f in lp.truth if f < fid - 30]:  # frames that lost a packet long ago
             lp.truth.pop(old)
             lp.arrived.pop(old, None)
-        positions = self.frame_model.estimate(objects, lp.error_rng)
-        _, ready = lp.edge_cpu.run("pose", self.now, int, 0)
-        self.schedule(ready, self._publish, lp.index, capture_us, fid, positions)
+        lp.poses.submit(self.now, lp.index, self.frame_model.estimate, (objects, lp.error_rng),
+                        self._estimated, (lp.index, capture_us, fid))
+
+    def _estimated(self, loop: int, capture_us: int, fid: int, positions: list[np.ndarray],
+                   ready_us: int) -> None:
+        self.schedule(ready_us, self._publish, loop, capture_us, fid, positions)
+
+    def _superseded(self, loop: int, capture_us: int, fid: int) -> None:
+        self.loops[loop].frames_superseded += 1
+        self.edges[loop].monitor.dropped(loop, fid)
 
     def _publish(self, loop: int, capture_us: int, fid: int, positions: list[np.ndarray]) -> None:
         lp = self.loops[loop]
@@ -298,7 +314,8 @@ class LoopsFederate(Federate):
         """Per-loop counters, one row per loop: rewritten whole (a few dozen rows) at each flush,
         so that a run that fails keeps them as of its last flush."""
         rows = [{"loop": lp.index, "frames": lp.frames, "frames_kept": lp.frames_kept,
-                 "ul_bytes": lp.bytes_sent, "picks": lp.ctl.picks} for lp in self.loops.values()]
+                 "frames_superseded": lp.frames_superseded, "ul_bytes": lp.bytes_sent,
+                 "picks": lp.ctl.picks} for lp in self.loops.values()]
         write_table(self.results_dir / "tables" / "abstract-loops.parquet", rows)
         return rows
 
@@ -308,4 +325,5 @@ class LoopsFederate(Federate):
     def finish(self, reason: str) -> dict[str, Any]:
         rows = self._write_loop_counters()
         return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows),
+                "frames_superseded": sum(r["frames_superseded"] for r in rows),
                 "edges": self.edges.summary()}

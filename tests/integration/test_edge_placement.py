@@ -82,6 +82,26 @@ def test_the_abstract_loops_of_an_edge_queue_on_one_node_when_its_compute_is_sha
     assert node.startswith("edge-") and queues["shared"][1] > 100_000, queues
 
 
+def test_an_edge_keeping_each_loops_newest_frame_never_falls_behind(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    # The eight loops above at PDP 1 (240 frames a second for a node that estimates 120): with
+    # `newest` a frame waits for the frames of the other loops in line at most, and the older
+    # frame of a loop still waiting is dropped.
+    sets = ["loops=8", "detailed_loops=0", "duration_s=2", "policy.name=none", "nodes.edge.cpus=0.5",
+            "edge.abstract_compute=shared", "edge.pose_queue=newest", *MODEL_TIMING_SETS]
+    result = execute_run(load_scenario(SMOKE, sets), tmp_path)
+    assert result.status == "completed", result.reason
+    jobs = pq.read_table(result.run_dir / "jobs.parquet").to_pylist()
+    poses = [j for j in jobs if j["kind"] == "pose"]
+    busy = sum(j["duration_us"] for j in poses) / 2e6
+    assert max(j["queue_us"] for j in poses) < 8 * 8_300 + 2_000, max(j["queue_us"] for j in poses)
+    assert busy > 0.9, busy  # the node estimates without pause
+    loops = result.kpis["federates"]["loops"]
+    # About half the frames are dropped: what arrives beyond the node's 120 a second.
+    assert 0.3 < loops["frames_superseded"] / loops["frames_kept"] < 0.7, loops
+
+
 def test_the_load_control_reads_a_shared_edges_compute_queue(tmp_path: Path) -> None:
     import pyarrow.parquet as pq
 

@@ -69,14 +69,16 @@ class Input:
     blob: bytes | None = None
 
 
-def tiny_scenario() -> Scenario:
-    """Two loops, the first detailed, tiny frames, model timing: fast and deterministic."""
+def tiny_scenario(**edge: Any) -> Scenario:
+    """Two loops, the first detailed, tiny frames, model timing: fast and deterministic; ``edge``
+    settings of the Edge beside the defaults."""
     model = {"cpus": 0.5, "timing": "model"}
     return parse_scenario({
         "name": "conformance", "seed": 3, "duration_s": END_US / 1e6, "loops": 2, "detailed_loops": 1,
         "camera": {"width_px": 64, "height_px": 48},
         "work_cell": {"first_object_s": 0.02, "object_period_s": 1.0},
         "nodes": {"camera": model, "edge": model, "robot": model},
+        "edge": edge,
     })
 
 
@@ -136,6 +138,17 @@ def edge_inputs(sc: Scenario) -> list[Input]:
             out.append(Input(t + 1000 * (len(sizes) - idx), "netsim", "net", "frame",
                              {"type": "frame", "loop": 0, "frame_id": k, "capture_us": t - 6000,
                               "idx": idx, "n": len(sizes), "seq": k, "packet_id": 100 * k + idx}, chunk))
+    return out
+
+
+def edge_burst_inputs(sc: Scenario) -> list[Input]:
+    """The frames of ``edge_inputs`` completing three at a time, 0.2 ms apart: the first is
+    estimated at once, the third takes the place of the second while it waits."""
+    period = sc.frame_period_us
+    out = []
+    for i in edge_inputs(sc):
+        k = i.body["frame_id"]
+        out.append(Input(i.t_us - (k % 3) * period + (k % 3) * 200, i.src, i.plane, i.kind, i.body, i.blob))
     return out
 
 
@@ -200,15 +213,24 @@ class Case:
     name: str
     cls: type[Federate]
     inputs: Callable[[Scenario], list[Input]]
+    edge: tuple[tuple[str, Any], ...] = ()  # Edge settings beside tiny_scenario's
+    variant: str = ""
 
     def __str__(self) -> str:
-        return self.name
+        return f"{self.name}-{self.variant}" if self.variant else self.name
+
+    def scenario(self) -> Scenario:
+        return tiny_scenario(**dict(self.edge))
+
+
+EDGE_NEWEST = Case("edge", EdgeFederate, edge_burst_inputs, (("pose_queue", "newest"),), "newest")
 
 
 CASES = [
     Case("physics", PhysicsFederate, physics_inputs),
     Case("camera-0", CameraFederate, camera_inputs),
     Case("edge", EdgeFederate, edge_inputs),
+    EDGE_NEWEST,
     Case("robot-0", RobotFederate, robot_inputs),
     Case("netsim", NetsimFederate, netsim_inputs),
     Case("loops", LoopsFederate, loops_inputs),
@@ -240,7 +262,7 @@ class ScriptedConductor:
 
     def __init__(self, case: Case, results_dir: Path, arrival_seed: int) -> None:
         self.case = case
-        self.sc = tiny_scenario()
+        self.sc = case.scenario()
         self.hub = InMemoryHub()
         self.bus = InMemoryBus(self.hub)
         self.rnd = random.Random(arrival_seed)
@@ -394,7 +416,7 @@ def test_window_protocol_determinism_and_next_events(case: Case, tmp_path: Path)
 
 
 def _first(case: Case) -> Input:
-    return min(case.inputs(tiny_scenario()), key=lambda i: i.t_us)
+    return min(case.inputs(case.scenario()), key=lambda i: i.t_us)
 
 
 @pytest.mark.parametrize("fault", ["unexpected kind", "malformed body"])
@@ -495,3 +517,15 @@ def test_the_suite_catches_a_federate_that_hides_its_next_event(tmp_path: Path) 
     jumped = drive(case, tmp_path / "b", arrival_seed=1, jump=True)
     assert len(stepped.outputs) == END_US // (5 * W)
     assert jumped.outputs != stepped.outputs
+
+
+def test_an_edge_keeping_the_newest_frame_drops_the_one_waiting_for_its_cpu(tmp_path: Path) -> None:
+    frames = len(frame_times(tiny_scenario(), 8000))
+    newest = drive(EDGE_NEWEST, tmp_path / "newest", arrival_seed=1, jump=False)
+    fifo = drive(Case("edge", EdgeFederate, edge_burst_inputs), tmp_path / "fifo", arrival_seed=1, jump=False)
+    assert newest.stopped and fifo.stopped
+    kept, every = newest.stopped.summary, fifo.stopped.summary
+    # Of each three frames complete at once the second is dropped for the third.
+    assert every["frames_estimated"] == frames and every["frames_superseded"] == 0
+    assert kept["frames_superseded"] == frames // 3
+    assert kept["frames_estimated"] == frames - frames // 3

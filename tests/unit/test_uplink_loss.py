@@ -96,6 +96,19 @@ def test_frames_that_never_started_and_one_left_incomplete_are_both_lost() -> No
     assert loss == pytest.approx(CELL_ALPHA * 2 / 3)  # 1 and 2 lost, 3 complete
 
 
+def test_a_frame_the_edge_drops_for_a_newer_one_is_lost_at_once_and_once() -> None:
+    mon = UplinkMonitor()
+    mon.started(0, 0, 10_000)
+    mon.started(0, 1, 43_000)
+    mon.dropped(0, 0)  # complete, waiting for the CPU, replaced by frame 1
+    mon.frame(0, 33_000, 60_000, 1)
+    counts = mon.close(60_000)
+    assert (counts.frames, counts.lost) == (1, 1)
+    assert mon.estimate(0).loss == pytest.approx(LOOP_ALPHA * (1 - LOOP_ALPHA))
+    mon.dropped(0, 0)  # already counted: nothing more
+    assert mon.close(10_000 + LOST_AFTER_US).lost == 0
+
+
 def test_a_frame_incomplete_stall_us_after_its_first_packet_has_stalled() -> None:
     mon = UplinkMonitor()
     mon.started(0, 0, 10_000)
