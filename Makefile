@@ -114,7 +114,7 @@ reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the tra
 reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
 	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
 
-reproduce-shared-edge: $(BIN)/cosim5g native ## none/heuristic/learned on one Edge CPU shared by every loop: capacity where the Edge, not the cell, saturates
+reproduce-shared-edge: $(BIN)/cosim5g native ## none/heuristic/learned on one Edge CPU shared by every loop, estimating every frame or each loop's newest: capacity where the Edge saturates
 	$(BIN)/cosim5g sweep configs/sweeps/shared_edge.yaml --jobs $(JOBS)
 
 reproduce-factory: $(BIN)/cosim5g native ## InF-SL hall with 1, 4, 18 gNBs x none/heuristic/learned x 1..30 loops per gNB: capacity per layout and per gNB, SINR CDFs (about 12 min on 2 cores)

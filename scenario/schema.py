@@ -375,7 +375,7 @@ class CameraConfig(Strict):
         default=0.08, ge=0, le=1.0, description="`d435`: stereo disparity error sd, px (RMS depth error "
         "= z^2 * this / (focal px * 50 mm baseline))")
     depth_noise_mm: float = Field(
-        default=0.0, ge=0, description="extra white depth noise sd at 1 m added by the physics renderer, "
+        default=0.0, ge=0, le=100, description="extra white depth noise sd at 1 m added by the physics renderer, "
         "mm, on top of `sensor_model` (noise makes 16-bit depth nearly incompressible)")
     readout_latency_us: int = Field(default=2000, ge=1, description="capture to camera node, us")
     mtu_bytes: int = Field(default=1500, ge=576, le=9000, description="IP packet size limit, bytes")
@@ -403,8 +403,8 @@ class EdgeConfig(Strict):
         "frames, domain/models/pose.onnx, run with ONNX Runtime; falls back to `classical` "
         "with a logged reason when the model is missing) or `classical` (colour segmentation)")
     policy_period_ms: int = Field(default=50, ge=1, description="co-design policy period, ms")
-    pose_packet_bytes: int = Field(default=120, ge=40, description="IP size of a pose packet")
-    qos_packet_bytes: int = Field(default=60, ge=40, description="IP size of a QoS packet")
+    pose_packet_bytes: int = Field(default=120, ge=40, le=9000, description="IP size of a pose packet")
+    qos_packet_bytes: int = Field(default=60, ge=40, le=9000, description="IP size of a QoS packet")
     placement: Literal["per_gnb", "central"] = Field(
         default="per_gnb", description="where the Edges stand with several gNBs "
         "(`hall.inf_layout`): `per_gnb`, an Edge at each gNB for the loops whose camera it serves, "

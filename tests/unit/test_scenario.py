@@ -90,6 +90,11 @@ def test_more_cells_than_the_hall_holds_are_refused_with_how_many_fit() -> None:
     ({"duration_s": 1e-7}, "(scenario)", "shorter than one window"),
     ({"watchdog": {"window_timeout_s": 1e-9}}, "watchdog.window_timeout_s", "greater than or equal to 0.1"),
     ({"policy": {"learned_model": ""}}, "policy.learned_model", "at least 1 character"),
+    # One IP packet each, at most a jumbo frame; a depth noise no sensor has.
+    ({"edge": {"pose_packet_bytes": 10**9}}, "edge.pose_packet_bytes", "less than or equal to 9000"),
+    ({"edge": {"qos_packet_bytes": 10**9}}, "edge.qos_packet_bytes", "less than or equal to 9000"),
+    ({"camera": {"depth_noise_mm": 1e308}}, "camera.depth_noise_mm", "less than or equal to 100"),
+    ({"edge": {"pose_queue": "lifo"}}, "edge.pose_queue", "'fifo' or 'newest'"),
 ])
 def test_values_no_run_could_carry_are_refused_naming_the_field(data: dict, field: str, says: str) -> None:
     with pytest.raises(ScenarioError) as exc:
