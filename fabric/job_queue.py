@@ -50,6 +50,11 @@ class JobQueue:
         """Jobs waiting outside the node (``newest`` only)."""
         return len(self._waiting)
 
+    def waiting_jobs(self) -> list[tuple[Any, ...]]:
+        """The ``done_args`` of the jobs waiting (``newest``), in line: at a run's end, the
+        frames complete and not estimated yet."""
+        return [job[4] for job in self._waiting.values()]
+
     def submit(self, now_us: int, key: Hashable, fn: Callable[..., Any], args: tuple[Any, ...],
                done: Callable[..., None], done_args: tuple[Any, ...]) -> None:
         """A job ``fn(*args)`` of source ``key`` arrives at ``now_us``."""

@@ -163,8 +163,15 @@ class EdgeFederate(Federate):
 
     def finish(self, reason: str) -> dict[str, Any]:
         done = self.frames_estimated
+        # Frames complete and still waiting for the CPU at the end: a row each, not estimated
+        # and not lost (in arrival order every complete frame has its row, its ready time later).
+        waiting = self.poses.waiting_jobs()
+        for loop, frame_id, capture_us, _, complete_us in waiting:
+            self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
+                                "complete_us": complete_us, "ready_us": None, "detections": 0,
+                                "estimator": self.estimator.name, "lost": False})
         return {"frames_estimated": done, "frames_incomplete": self.frames_incomplete,
-                "frames_superseded": self.frames_superseded,
+                "frames_superseded": self.frames_superseded, "frames_waiting": len(waiting),
                 "compute_speed": self.cpu.speed_summary(self.now),
                 "estimator": self.estimator.name, "estimator_requested": self.scenario.edge.estimator,
                 "estimator_fallback_reason": self.estimator_fallback or "",

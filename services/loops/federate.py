@@ -123,6 +123,7 @@ class LoopsFederate(Federate):
             )
             lp = self.loops[i]
             self.record_jobs(lp.camera_cpu, *(() if share_edge else (lp.edge_cpu,)), lp.robot_cpu)
+        self.pose_queues = list({id(lp.poses): lp.poses for lp in self.loops.values()}.values())
         self.schedule(0, self._control_tick)
         self.next_tick_us = 0  # when ``_control_tick``, its only sender of commands, runs next
         self.schedule(0, self._policy_tick)
@@ -326,4 +327,6 @@ class LoopsFederate(Federate):
         rows = self._write_loop_counters()
         return {"abstract_loops": len(self.loops), "frames_kept": sum(r["frames_kept"] for r in rows),
                 "frames_superseded": sum(r["frames_superseded"] for r in rows),
+                # Complete and still waiting for their Edge's CPU at the end (`newest`).
+                "frames_waiting": sum(q.waiting for q in self.pose_queues),
                 "edges": self.edges.summary()}

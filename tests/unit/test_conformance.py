@@ -528,4 +528,6 @@ def test_an_edge_keeping_the_newest_frame_drops_the_one_waiting_for_its_cpu(tmp_
     # Of each three frames complete at once the second is dropped for the third.
     assert every["frames_estimated"] == frames and every["frames_superseded"] == 0
     assert kept["frames_superseded"] == frames // 3
-    assert kept["frames_estimated"] == frames - frames // 3
+    assert kept["frames_estimated"] + kept["frames_waiting"] == frames - frames // 3
+    # Every complete frame has its row either way: estimated, dropped or waiting at the end.
+    assert kept["records"]["frames"] == every["records"]["frames"] == frames, kept["records"]

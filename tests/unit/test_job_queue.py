@@ -123,3 +123,12 @@ def test_fifo_and_newest_run_the_same_jobs_when_the_node_keeps_up() -> None:
 def test_an_unknown_mode_is_refused_naming_the_allowed() -> None:
     with pytest.raises(ValueError, match="fifo, newest"):
         JobQueue(node(), "pose", "lifo", lambda *a: None)  # type: ignore[arg-type]
+
+
+def test_the_jobs_still_waiting_are_listed_in_line() -> None:
+    clock = Clock()
+    q = JobQueue(node(), "pose", "newest", clock.schedule)
+    for loop, frame in ((0, 0), (1, 1), (2, 2), (1, 3)):
+        q.submit(0, loop, int, (), lambda *a: None, (loop, frame))
+    # Loop 0's frame runs; loop 1's newer frame waits in its older one's place, before loop 2's.
+    assert q.waiting_jobs() == [(1, 3), (2, 2)] and q.dropped == 1
