@@ -52,7 +52,7 @@ def test_shipped_specs_load_and_expand() -> None:
     assert {p.scenario.camera.frame_keep for p in fast} == {"bernoulli", "spaced"}
     assert {p.scenario.work_cell.first_object_spread_s for p in fast} == {0.0, 4.0, 6.0}
     shared = expand(load_spec(ROOT / "configs" / "sweeps" / "shared_edge.yaml", SCENARIOS), SCENARIOS)
-    assert len(shared) == 2 * 3 * 12 * 3
+    assert len(shared) == 2 * 3 * 16 * 3
     assert {p.scenario.edge.abstract_compute for p in shared} == {"shared"}
     assert {p.scenario.edge.pose_queue for p in shared} == {"fifo", "newest"}
     # The other shipped specs expand in the test below, but for this one.
