@@ -43,7 +43,6 @@ class JobQueue:
         self._waiting: dict[Hashable, tuple[int, Callable[..., Any], tuple[Any, ...], Callable[..., None],
                                             tuple[Any, ...]]] = {}
         self._serve_at: int | None = None  # when a service event is due
-        self.dropped = 0
 
     @property
     def waiting(self) -> int:
@@ -63,10 +62,8 @@ class JobQueue:
             done(*done_args, result, ready)
             return
         old = self._waiting.get(key)
-        if old is not None:
-            self.dropped += 1
-            if self._dropped is not None:
-                self._dropped(*old[4])
+        if old is not None and self._dropped is not None:
+            self._dropped(*old[4])
         # A newer job takes the older's place in line, so that a source whose jobs keep replacing
         # each other is still served in its turn.
         self._waiting[key] = (now_us, fn, args, done, done_args)

@@ -127,8 +127,9 @@ def test_an_unknown_mode_is_refused_naming_the_allowed() -> None:
 
 def test_the_jobs_still_waiting_are_listed_in_line() -> None:
     clock = Clock()
-    q = JobQueue(node(), "pose", "newest", clock.schedule)
+    dropped: list[tuple[int, int]] = []
+    q = JobQueue(node(), "pose", "newest", clock.schedule, lambda *job: dropped.append(job))
     for loop, frame in ((0, 0), (1, 1), (2, 2), (1, 3)):
         q.submit(0, loop, int, (), lambda *a: None, (loop, frame))
     # Loop 0's frame runs; loop 1's newer frame waits in its older one's place, before loop 2's.
-    assert q.waiting_jobs() == [(1, 3), (2, 2)] and q.dropped == 1
+    assert q.waiting_jobs() == [(1, 3), (2, 2)] and q.waiting == 2 and dropped == [(1, 1)]
