@@ -95,20 +95,22 @@ class EdgeFederate(Federate):
 
     def _estimated(self, loop: int, frame_id: int, capture_us: int, seq: int, complete_us: int,
                    detections: list[Detection], ready_us: int) -> None:
-        self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
-                            "complete_us": complete_us, "ready_us": ready_us, "detections": len(detections),
-                            "estimator": self.estimator.name, "lost": False})
+        self._frame_row(loop, frame_id, capture_us, complete_us, ready_us, len(detections), lost=False)
         self.frames_estimated += 1
         self.detections += len(detections)
         self.schedule(ready_us, self._publish, loop, capture_us, seq, detections)
 
     def _superseded(self, loop: int, frame_id: int, capture_us: int, seq: int, complete_us: int) -> None:
         # Complete, never estimated: a row with no ready time, as lost.
-        self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
-                            "complete_us": complete_us, "ready_us": None, "detections": 0,
-                            "estimator": self.estimator.name, "lost": True})
+        self._frame_row(loop, frame_id, capture_us, complete_us, None, 0, lost=True)
         self.frames_superseded += 1
         self.edges[loop].monitor.dropped(loop, seq)
+
+    def _frame_row(self, loop: int, frame_id: int, capture_us: int, complete_us: int | None,
+                   ready_us: int | None, detections: int, lost: bool) -> None:
+        self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
+                            "complete_us": complete_us, "ready_us": ready_us, "detections": detections,
+                            "estimator": self.estimator.name, "lost": lost})
 
     def _estimate(self, data: bytes) -> list[Detection]:
         rgb, depth = decode_frame(data)
@@ -117,9 +119,7 @@ class EdgeFederate(Federate):
     def _drop_stale_partials(self) -> None:
         for key in [k for k, p in self.partial.items() if self.now - p["first_us"] > PARTIAL_FRAME_TIMEOUT_US]:
             p = self.partial.pop(key)
-            self.frames.append({"loop": key[0], "frame_id": key[1], "capture_us": p["capture_us"],
-                                "complete_us": None, "ready_us": None, "detections": 0,
-                                "estimator": self.estimator.name, "lost": True})
+            self._frame_row(*key, p["capture_us"], None, None, 0, lost=True)
             self.frames_incomplete += 1
 
     def _publish(self, loop: int, capture_us: int, seq: int, detections: list[Detection]) -> None:
@@ -167,9 +167,7 @@ class EdgeFederate(Federate):
         # and not lost (in arrival order every complete frame has its row, its ready time later).
         waiting = self.poses.waiting_jobs()
         for loop, frame_id, capture_us, _, complete_us in waiting:
-            self.frames.append({"loop": loop, "frame_id": frame_id, "capture_us": capture_us,
-                                "complete_us": complete_us, "ready_us": None, "detections": 0,
-                                "estimator": self.estimator.name, "lost": False})
+            self._frame_row(loop, frame_id, capture_us, complete_us, None, 0, lost=False)
         return {"frames_estimated": done, "frames_incomplete": self.frames_incomplete,
                 "frames_superseded": self.frames_superseded, "frames_waiting": len(waiting),
                 "compute_speed": self.cpu.speed_summary(self.now),

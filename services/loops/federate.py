@@ -56,8 +56,7 @@ class AbstractLoop:
     size_rng: np.random.Generator
     error_rng: np.random.Generator
     camera_cpu: ComputeNode
-    edge_cpu: ComputeNode
-    poses: JobQueue  # the frames waiting for edge_cpu's pose estimation
+    poses: JobQueue  # the frames waiting for pose estimation on the Edge's node (poses.node)
     robot_cpu: ComputeNode
     pdp: float = 1.0
     pdb_us: int | None = None
@@ -117,12 +116,11 @@ class LoopsFederate(Federate):
                 size_rng=self.rng(f"camera-{i}/size"),
                 error_rng=self.rng(f"edge-{i}/error"),
                 camera_cpu=ComputeNode(f"camera-{i}", modelled(nodes.camera), self.rng(f"camera-{i}/compute")),
-                edge_cpu=poses.node,
                 poses=poses,
                 robot_cpu=ComputeNode(f"robot-{i}", modelled(nodes.robot), self.rng(f"robot-{i}/compute")),
             )
             lp = self.loops[i]
-            self.record_jobs(lp.camera_cpu, *(() if share_edge else (lp.edge_cpu,)), lp.robot_cpu)
+            self.record_jobs(lp.camera_cpu, *(() if share_edge else (lp.poses.node,)), lp.robot_cpu)
         self.pose_queues = list({id(lp.poses): lp.poses for lp in self.loops.values()}.values())
         self.schedule(0, self._control_tick)
         self.next_tick_us = 0  # when ``_control_tick``, its only sender of commands, runs next
@@ -257,7 +255,7 @@ class LoopsFederate(Federate):
             message = codesign.signal(lp.index, qos, self.now)
             if message is not None:
                 # Modelled timing: the policy job's duration is drawn only when its QoS is sent.
-                _, ready = lp.edge_cpu.run("policy", self.now, int, 0)
+                _, ready = lp.poses.node.run("policy", self.now, int, 0)
                 self.schedule(ready, self._downlink, f"camera-{lp.index}", "qos", sc.edge.qos_packet_bytes,
                               message)
                 if sc.policy.signalling == "lower":

@@ -27,9 +27,6 @@ class Clock:
         self._seq += 1
         heapq.heappush(self._heap, (t_us, self._seq, fn, args))
 
-    def at(self, t_us: int, fn: Callable[..., None], *args: Any) -> None:
-        self.schedule(t_us, fn, *args)
-
     def run(self) -> None:
         while self._heap:
             self.now, _, fn, args = heapq.heappop(self._heap)
@@ -57,10 +54,10 @@ def drive(mode: str, arrivals: list[tuple[int, int]], cpus: float = 1.0,
         done.append((loop, frame, cpu.records[-1].start_us, ready))
 
     for frame, (t, loop) in enumerate(arrivals):
-        clock.at(t, lambda t=t, loop=loop, frame=frame: q.submit(t, loop, lambda f: f * 2, (frame,),
-                                                                  estimated, (loop, frame)))
+        clock.schedule(t, lambda t=t, loop=loop, frame=frame: q.submit(
+            t, loop, lambda f: f * 2, (frame,), estimated, (loop, frame)))
     for t in policy_at:
-        clock.at(t, lambda t=t: cpu.run("policy", t, int, 0))
+        clock.schedule(t, lambda t=t: cpu.run("policy", t, int, 0))
     clock.run()
     return done, dropped, q
 
