@@ -418,6 +418,10 @@ class ComputeNode:
         # Per job kind, what ``publish_metrics`` moves into the series: durations, queueing
         # delays, CPU and throttled time (s; throttled only where the cgroup is read).
         self._unpublished: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
+        # Where the node enters itself at its first job since it last published (``watch``): a
+        # federate holding hundreds of nodes publishes only those that ran, every window.
+        self._ran: list[ComputeNode] | None = None
+        self._announced = False
         self._job_models: dict[str, JobModel] = {}
         self._rng = rng
         self.records: list[JobRecord] = []
@@ -486,6 +490,9 @@ class ComputeNode:
         pending = self._unpublished.get(kind)
         if pending is None:
             pending = self._unpublished[kind] = ([], [], [], [])
+        if not self._announced and self._ran is not None:
+            self._announced = True
+            self._ran.append(self)
         pending[0].append(duration / 1e6)
         pending[1].append((start - arrival_us) / 1e6)
         if cpu_ns is not None:
@@ -501,9 +508,15 @@ class ComputeNode:
             self._probe(arrival_us)
         return result, end
 
+    def watch(self, ran: list[ComputeNode]) -> None:
+        """Append this node to ``ran`` at its first job after each ``publish_metrics``."""
+        self._ran = ran
+
     def publish_metrics(self) -> None:
         """Move the jobs run since the last call into the metric series, a kind at a time (the
-        federate calls it once a window: a lock per series, not per job and series)."""
+        federate calls it every 100 simulated ms at most: a lock per series, not per job and
+        series)."""
+        self._announced = False
         for kind, (durations, queues, cpu, throttled) in self._unpublished.items():
             if not durations:
                 continue

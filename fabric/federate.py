@@ -45,6 +45,11 @@ from scenario.schema import Scenario
 if TYPE_CHECKING:
     from fabric.compute import ComputeNode
 
+# Job metrics are published at a window's end once this much simulated time has passed since
+# they last were (and with every flush of the records): a dashboard scrapes every few wall
+# seconds, and a partitioned run's 1-ms windows would otherwise publish every node's every job.
+JOB_METRICS_EVERY_US = 100_000
+
 log = logging.getLogger(__name__)
 
 
@@ -124,7 +129,9 @@ class Federate:
         self._busy_s = 0.0  # wall time spent processing windows: where a slow run's time goes
         self._tables: dict[str, TableWriter] = {}
         self._job_nodes: list[ComputeNode] = []
+        self._nodes_ran: list[ComputeNode] = []  # those with jobs not yet in the metrics
         self._next_flush_us = FLUSH_EVERY_US
+        self._next_job_metrics_us = 0
         self._dispatch: dict[str, tuple[Callable[[Any], Any], type, Callable[[Any, Message], None]]] | None = None
         # Set by a ``fabric.group.FederateGroup`` hosting this federate: the names of the
         # federates it hosts, and how a message to one of them is handed over (the message
@@ -198,18 +205,26 @@ class Federate:
     def record_jobs(self, *nodes: ComputeNode) -> None:
         """Stream the job records of ``nodes`` into the ``jobs`` table."""
         self._job_nodes.extend(nodes)
+        for node in nodes:
+            node.watch(self._nodes_ran)
         self.table("jobs")
 
     def _drain_jobs(self) -> None:
         if not self._job_nodes:
             return
+        self._publish_jobs()
         columns: dict[str, list[Any]] = {}
         for node in self._job_nodes:
-            node.publish_metrics()
             if node.records:
                 node.add_record_columns(columns)
                 node.records.clear()
         self.table("jobs").extend_columns(columns)
+
+    def _publish_jobs(self) -> None:
+        """Move the jobs of the nodes that ran since the last call into the metrics."""
+        for node in self._nodes_ran:
+            node.publish_metrics()
+        self._nodes_ran.clear()
 
     def flush_records(self) -> None:
         """Write every table's buffered rows (a batch each): complete up to the window end."""
@@ -375,8 +390,9 @@ class Federate:
     def end_window(self, adv: Advance) -> None:
         """Publish what the window sent, count it, write the records when they are due."""
         self.flush_outbox()
-        for node in self._job_nodes:
-            node.publish_metrics()
+        if adv.t_end_us >= self._next_job_metrics_us:
+            self._publish_jobs()
+            self._next_job_metrics_us = adv.t_end_us + JOB_METRICS_EVERY_US
         self._window_series.inc()
         self._event_series.inc(self._events - self._events_before)
         if adv.t_end_us >= self._next_flush_us:

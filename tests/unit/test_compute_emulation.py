@@ -460,3 +460,26 @@ def test_calibration_reports_ratios_with_intervals_and_measured_causes() -> None
             "host_scores": {"docker": 300.0}}
     text = render(meta, rows, notes)
     assert "| compress | 0.25 | 36 |" in text and "## Where an error remains" in text
+
+
+def test_a_node_enters_the_watch_list_once_per_publication_and_only_when_it_ran() -> None:
+    from prometheus_client import REGISTRY
+
+    ran: list[ComputeNode] = []
+    busy, idle = (ComputeNode(name, NodeProfile(cpus=0.25, timing="model"), rng(1, name))
+                  for name in ("watch-busy", "watch-idle"))
+    for n in (busy, idle):
+        n.watch(ran)
+    busy.run("compress", 0, int)
+    busy.run("compress", 1_000, int)
+    assert ran == [busy]
+    for n in ran:
+        n.publish_metrics()
+    ran.clear()
+    count = REGISTRY.get_sample_value("cosim_compute_job_duration_seconds_count",
+                                      {"node": "watch-busy", "kind": "compress"})
+    assert count == 2
+    assert REGISTRY.get_sample_value("cosim_compute_job_duration_seconds_count",
+                                     {"node": "watch-idle", "kind": "compress"}) is None
+    busy.run("compress", 2_000, int)
+    assert ran == [busy], "listed again at its first job after publishing"
