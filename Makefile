@@ -23,7 +23,7 @@ PLATFORM_GID := $$(u=$$(id -u); [ $$u = 0 ] && echo 10001 || id -g)
 COMPOSE_ENV := DOCKER_GID=$$(stat -c %g /var/run/docker.sock) COSIM5G_UID=$(PLATFORM_UID) COSIM5G_GID=$(PLATFORM_GID)
 
 .PHONY: help setup scenario-check dashboards install run smoke test test-unit test-integration lint bench bench-cluster load bench-docker images up down \
-	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-shared-edge reproduce-sensitivity reproduce-factory soak chaos native \
+	reproduce reproduce-quick reproduce-codesign reproduce-family reproduce-overload reproduce-load-feature reproduce-shared-edge reproduce-sensitivity reproduce-factory soak chaos native \
 	calibrate measure-frames train-perception train-policy policy-network install-train clean
 
 help: ## list the targets
@@ -113,6 +113,9 @@ reproduce-family: $(BIN)/cosim5g native ## co-design on 13 work cells of the tra
 
 reproduce-overload: $(BIN)/cosim5g native ## none/heuristic/learned from below saturation to several times the radio cell's capacity: success, injected vs delivered traffic
 	$(BIN)/cosim5g sweep configs/sweeps/overload.yaml --jobs $(JOBS)
+
+reproduce-load-feature: $(BIN)/cosim5g native ## the learned policy with its load input live or frozen at an idle cell's, under the Edge's bounds and under the floor alone
+	$(BIN)/cosim5g sweep configs/sweeps/load_feature.yaml --jobs $(JOBS)
 
 reproduce-shared-edge: $(BIN)/cosim5g native ## none/heuristic/learned on one Edge CPU shared by every loop, estimating every frame or each loop's newest: capacity where the Edge saturates
 	$(BIN)/cosim5g sweep configs/sweeps/shared_edge.yaml --jobs $(JOBS)

@@ -188,6 +188,8 @@ class LearnedPolicy(Policy):
         except Exception as exc:  # a corrupt or incompatible file, a network of no input
             raise ValueError(f"learned policy model {path} cannot be loaded ({type(exc).__name__}: {exc}); "
                              f"retrain it: {TRAIN_COMMAND}") from None
+        self._observe = ((lambda state: F.features(F.idle_load(state))) if cfg.load_feature == "idle"
+                         else F.features)
         self.pdp_levels = tuple(float(p) for p in self.info["pdp_levels"])
         self.budget_levels_ms = tuple(float(b) for b in self.info["budget_levels_ms"])
         self._probe()
@@ -212,7 +214,7 @@ class LearnedPolicy(Policy):
 
     def logits(self, state: LoopState) -> np.ndarray:
         """The network's output for ``state``: PDP logits then budget logits."""
-        x = F.features(state)[None]
+        x = self._observe(state)[None]
         return np.asarray(self.session.run(None, {self.input_name: x})[0][0])
 
     def decide(self, state: LoopState) -> Qos:
@@ -223,7 +225,7 @@ class LearnedPolicy(Policy):
         # (tests/unit/test_policy_learning.py), and the call's overhead is most of a small network's cost.
         if not states:
             return []
-        x = np.stack([F.features(state) for state in states])
+        x = np.stack([self._observe(state) for state in states])
         out = self.session.run(None, {self.input_name: x})[0]
         return [decode(row, self.pdp_levels, self.budget_levels_ms) for row in out]
 

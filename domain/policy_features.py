@@ -5,6 +5,7 @@ named ``FEATURE_SET`` so that a model trained on another is refused, and its act
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -73,6 +74,12 @@ def next_part_s(state: LoopState) -> float:
         return 0.0
     period = state.object_period_s or DEFAULT_OBJECT_PERIOD_S
     return (state.last_spawn_us - state.now_us) / 1e6 + period
+
+
+def idle_load(state: LoopState) -> LoopState:
+    """``state`` as the observation sees it on an idle radio cell: no queueing delay (the load
+    feature frozen, an ablation; the floor and the load control read the state itself)."""
+    return dataclasses.replace(state, link=dataclasses.replace(state.link, cell_queueing_s=0.0))
 
 
 def features(state: LoopState) -> np.ndarray:

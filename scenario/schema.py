@@ -456,6 +456,10 @@ class PolicyConfig(Strict):
     learned_model: str | None = Field(
         default=None, min_length=1, description="`learned`: the ONNX model (its model card, the .json beside it, "
         "must be there too); default domain/models/policy.onnx, made by `make train-policy`")
+    load_feature: Literal["live", "idle"] = Field(
+        default="live", description="`learned`: the load its network observes (the cell's queueing delay "
+        "at the Edge): `live`, as measured; `idle`, frozen at an idle cell's (no queueing delay), an "
+        "ablation of how much its choices read the load (the floor and the load control still see it)")
     signalling: Literal["app", "lower"] = Field(
         default="app", description="how the QoS reaches the network: `app`, to the camera only, as "
         "application data over the downlink (the camera drops frames by PDP, stamps the budget on "

@@ -123,7 +123,7 @@ def test_bad_sweep_requests_are_refused_with_the_field_named(finished_sweep: Any
     status, body = server.api("POST", "/sweeps", {"spec": {**tiny_spec("x", [1]), "grid": {"loops": []}}})
     assert status == 422 and body["detail"][0]["field"] == "grid.loops"
     assert server.api("GET", "/sweeps/specs")[1] == ["codesign", "codesign_family", "factory_gnbs", "family",
-                                                      "fast_cells", "overload", "quick", "reproduce",
+                                                      "fast_cells", "load_feature", "overload", "quick", "reproduce",
                                                       "sensitivity", "sensitivity_detailed", "shared_edge"]
 
 

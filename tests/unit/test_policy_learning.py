@@ -21,7 +21,7 @@ from domain import work_cell as g
 from domain.congestion import LinkEstimate
 from domain.edge_side import CoDesign
 from domain.loop_state import LoopState
-from domain.policy import DEFAULT_POLICY_MODEL, make_policy
+from domain.policy import DEFAULT_POLICY_MODEL, LearnedPolicy, make_policy
 from domain.tracker import Tracker
 from scenario.schema import PolicyConfig, Scenario, WorkCellConfig
 
@@ -138,6 +138,19 @@ def test_policies_decide_many_loops_as_one_at_a_time() -> None:
         pol = make_policy(PolicyConfig(name=name))
         assert pol.decide_many(states) == [pol.decide(s) for s in states], name
         assert pol.decide_many([]) == []
+
+
+def test_the_load_feature_frozen_reads_every_state_as_on_an_idle_cell() -> None:
+    """``load_feature: idle`` feeds the network the state with no queueing delay, and only that."""
+    loaded = state([track(0, -0.3)], now_us=40_000, link=LinkEstimate(cell_queueing_s=0.2, delay_s=0.3))
+    idle = F.idle_load(loaded)
+    assert idle.link.cell_queueing_s == 0.0 and idle.link.delay_s == 0.3 and idle.tracks == loaded.tracks
+    live = make_policy(PolicyConfig(name="learned"))
+    frozen = make_policy(PolicyConfig(name="learned", load_feature="idle"))
+    assert isinstance(live, LearnedPolicy) and isinstance(frozen, LearnedPolicy)
+    assert np.array_equal(frozen.logits(loaded), live.logits(idle))
+    assert frozen.decide_many([loaded, idle]) == [live.decide(idle)] * 2
+    assert not np.array_equal(live.logits(loaded), live.logits(idle)), "the feature reaches the network"
 
 
 def test_missing_model_raises_naming_the_file(tmp_path: Path) -> None:

@@ -6,7 +6,6 @@ mean cost and reward.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -58,11 +57,6 @@ def at_lambda(result: dict[str, Any], lam: float) -> dict[str, Any]:
         return {**result, "lambda": lam}
     rows = [{**r, "return": lam * (r["placed"] - r["missed"] - r["dropped"]) - r["cost"]} for r in result["rows"]]
     return {**result, "lambda": lam, **pool(rows), "rows": rows}
-
-
-def idle_link(state: LoopState) -> LoopState:
-    """``state`` as on an idle radio cell: no queueing delay (the load feature frozen)."""
-    return dataclasses.replace(state, link=dataclasses.replace(state.link, cell_queueing_s=0.0))
 
 
 def pool(rows: list[dict[str, Any]]) -> dict[str, Any]:

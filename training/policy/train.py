@@ -212,7 +212,6 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict[str, An
     from training.policy.env import DEFAULT_LAMBDA, EPISODE_S, HEADROOM
     from training.policy.evaluate import (
         EVAL_SEED,
-        idle_link,
         lost_to_policy,
         policy_for,
         run_episodes,
@@ -291,7 +290,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict[str, An
     # and with its load feature frozen at an idle cell's value: how much of its choice is the load's.
     frozen = policy_for("learned", str(onnx_path))
     for name, decide in (("learned, floor only", policy_for("learned", str(onnx_path)).decide),
-                         ("learned, floor only, load frozen", lambda st: frozen.decide(idle_link(st)))):
+                         ("learned, floor only, load frozen", lambda st: frozen.decide(F.idle_load(st)))):
         evaluation[name] = run_episodes(decide, episodes=episodes, lam=lam, episode_s=episode_s, bounded=False,
                                         floor=True)
     for name, res in evaluation.items():
