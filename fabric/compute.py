@@ -404,7 +404,8 @@ class ComputeNode:
     ``host`` (this host's score), ``clock`` (the job CPU clock) and ``probe`` (a short speed
     measurement, a score) are injectable; by default the score comes from
     ``host_speed.host_score()`` (``COSIM5G_HOST_SCORE``, the cache or a measurement), only for
-    ``cpu`` and ``wall`` timing."""
+    ``cpu`` and ``wall`` timing, and only once a job needs it: a node that never runs one (the
+    Edge of a run whose loops are all abstract) measures nothing."""
 
     def __init__(self, node: str, profile: NodeProfile, rng: np.random.Generator, *,
                  host: HostScore | None = None, clock: CpuClock | None = None,
@@ -428,17 +429,30 @@ class ComputeNode:
         self.measured = profile.timing != "model"
         # Throttling only matters to a job whose duration is measured: a drawn one never reads it.
         self._cgroup_visible = self.measured and read_throttled_ns() is not None
-        self.scale = 1.0
         self.quota: CpuQuota | None = None
-        self.probes: list[tuple[int, float]] = []
+        self.probes: list[tuple[int, float]] = []  # the first is taken at the first job
         self._probe_fn = probe or host_speed.probe
         self._next_probe_us = 0
+        self._host = host
+        self._scale: float | None = None if self.measured else 1.0
         if self.measured:
             self._clock: CpuClock = clock or ThreadCpuClock()
             self.reference = host_speed.reference()
-            self.host = host or host_speed.host_score()
-            self.scale = self.host.score / self.reference.score
-            self._probe(0)
+
+    @property
+    def host(self) -> HostScore:
+        """This host's score (measured at the first use unless given or cached)."""
+        if self._host is None:
+            self._host = host_speed.host_score()
+        return self._host
+
+    @property
+    def scale(self) -> float:
+        """Reference cores per host core: what a measured duration is multiplied by (1 in
+        ``model`` timing)."""
+        if self._scale is None:
+            self._scale = self.host.score / self.reference.score
+        return self._scale
 
     @property
     def free_us(self) -> int:
@@ -601,6 +615,8 @@ class ComputeNode:
         ``DRIFT_LIMIT`` (then its compute latencies are suspect)."""
         if not self.measured:
             return {"timing": "model", "host_independent": True}
+        if not self.probes:  # no job ran: no duration was scaled, the host was never scored
+            return {"timing": self.profile.timing, "cpus": self.profile.cpus, "jobs": 0}
         if t_us is not None and (not self.probes or self.probes[-1][0] < t_us):
             self._probe(t_us)
         scores = [s for _, s in self.probes]

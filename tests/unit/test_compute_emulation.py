@@ -216,9 +216,9 @@ def test_an_injected_score_scales_real_jobs(monkeypatch: pytest.MonkeyPatch) -> 
     host_speed.host_score.cache_clear()
     try:
         n = ComputeNode("n", NodeProfile(cpus=0.5), rng(1, "n"), probe=lambda: 2 * REF.score)
+        assert n.host.source == "injected" and n.scale == pytest.approx(2.0)
     finally:
         host_speed.host_score.cache_clear()
-    assert n.host.source == "injected" and n.scale == pytest.approx(2.0)
     n.run("job", 0, spin, 50_000)
     rec = n.records[0]
     assert rec.duration_us == pytest.approx(rec.cpu_us * 2 / 0.5, abs=5)  # cpu_us is floored
@@ -390,7 +390,17 @@ def test_a_node_whose_speed_drifts_is_flagged() -> None:
     for key in ("host_score", "reference_score", "scale", "cpu_model", "run_score_median"):
         assert key in summary
     steady = node(cpus=0.25, probe=iter([REF.score, 1.05 * REF.score]).__next__)
+    steady.run("job", 0, int)
     assert not steady.speed_summary(1_000)["flagged"]
+
+
+def test_a_node_that_runs_no_job_never_scores_the_host() -> None:
+    def no_score() -> float:
+        raise AssertionError("a node with no job must not measure the host")
+
+    n = ComputeNode("n", NodeProfile(cpus=0.5), rng(1, "n"), probe=no_score)
+    assert n.speed_summary(5_000_000) == {"timing": "cpu", "cpus": 0.5, "jobs": 0}
+    assert n._host is None and not n.probes
 
 
 def test_model_timing_stays_host_independent() -> None:
