@@ -420,7 +420,7 @@ class ComputeNode:
         # delays, CPU and throttled time (s; throttled only where the cgroup is read).
         self._unpublished: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
         # Where the node enters itself at its first job since it last published (``watch``): a
-        # federate holding hundreds of nodes publishes only those that ran, every window.
+        # federate holding hundreds of nodes publishes only those that ran.
         self._ran: list[ComputeNode] | None = None
         self._announced = False
         self._job_models: dict[str, JobModel] = {}
