@@ -334,10 +334,13 @@ def test_network_model_follows_the_measured_cell() -> None:
 @pytest.mark.skipif(any(importlib.util.find_spec(m) is None for m in ("torch", "onnx", "stable_baselines3", "gymnasium")),
                     reason="training needs torch, onnx, gymnasium and stable-baselines3 (pip install -e '.[train]')")
 def test_quick_training_exports_a_model_the_edge_loads(tmp_path: Path) -> None:
-    """PPO on a tiny budget, ONNX export, model card, curve; the ``learned`` policy loads it."""
-    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "train_policy.py"), "--quick", "--out", str(tmp_path)],
-                          capture_output=True, text=True, timeout=600, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    """PPO on a tiny budget, ONNX export, model card, curve; the ``learned`` policy loads it; the
+    same seed trains the same network to the byte."""
+    for out in (tmp_path, tmp_path / "again"):
+        proc = subprocess.run([sys.executable, str(ROOT / "tools" / "train_policy.py"), "--quick", "--out", str(out)],
+                              capture_output=True, text=True, timeout=600, cwd=ROOT)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "policy.onnx").read_bytes() == (tmp_path / "again" / "policy.onnx").read_bytes()
     assert "wrote " in proc.stdout
     card = json.loads((tmp_path / "policy.json").read_text())
     assert card["onnx_check"]["argmax_agreement"] == 1.0 and card["evaluation"]["learned"]["tasks"] > 0
