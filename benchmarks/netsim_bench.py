@@ -26,6 +26,10 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # runnable from a checkout without installing
     sys.path.insert(0, str(ROOT))
+# One BLAS thread, as every federate runs netsim (coordinator/runtime_process.py); set before
+# numpy loads.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 from fabric.heap import simulation_heap  # noqa: E402
 from fabric.native import compiled_loaded  # noqa: E402
