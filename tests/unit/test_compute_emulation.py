@@ -395,10 +395,10 @@ def test_a_node_whose_speed_drifts_is_flagged() -> None:
 
 
 def test_a_node_that_runs_no_job_never_scores_the_host() -> None:
-    def no_score() -> float:
+    def no_probe() -> float:
         raise AssertionError("a node with no job must not measure the host")
 
-    n = ComputeNode("n", NodeProfile(cpus=0.5), rng(1, "n"), probe=no_score)
+    n = ComputeNode("n", NodeProfile(cpus=0.5), rng(1, "n"), probe=no_probe)
     assert n.speed_summary(5_000_000) == {"timing": "cpu", "cpus": 0.5, "jobs": 0}
     assert n._host is None and not n.probes
 

@@ -11,12 +11,15 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from prometheus_client import REGISTRY
 
 from fabric import tables
 from fabric.bus import InMemoryBus, InMemoryHub
-from fabric.compute import JobRecord
+from fabric.compute import ComputeNode, JobRecord
 from fabric.driver import WindowDriver
-from fabric.federate import Federate, FederateContext
+from fabric.federate import JOB_METRICS_EVERY_US, Federate, FederateContext
+from fabric.messages import Advance
+from fabric.seeding import rng
 from fabric.tables import (
     PACKETS,
     PartInfo,
@@ -26,7 +29,7 @@ from fabric.tables import (
     part_path,
     read_part,
 )
-from scenario.schema import parse_scenario
+from scenario.schema import NodeProfile, parse_scenario
 
 
 def packet(i: int, lost: bool = False) -> dict[str, Any]:
@@ -291,3 +294,43 @@ def test_a_run_whose_coordinator_died_is_closed_when_a_coordinator_starts(tmp_pa
     assert kpis["recorded"]["rows"]["packets"] == 6
     assert kpis["recorded"]["sim_time_reached_s"] == pytest.approx(0.005)
     assert pq.read_table(run_dir / "packets.parquet").num_rows == 6
+
+
+class Worker(Federate):
+    """Holds many compute nodes and runs one job on the first every millisecond."""
+
+    def setup(self) -> None:
+        self.nodes = [ComputeNode(f"worker-{k}", NodeProfile(cpus=1.0, timing="model"), rng(1, f"worker-{k}"))
+                      for k in range(50)]
+        self.record_jobs(*self.nodes)
+        self.schedule(0, self.tick)
+
+    def tick(self) -> None:
+        self.nodes[0].run("compress", self.now, int)
+        self.schedule(self.now + 1000, self.tick)
+
+
+def test_job_metrics_move_in_every_100_simulated_ms_from_the_nodes_that_ran(tmp_path: Path) -> None:
+    """1-ms windows do not publish every window: the jobs wait for the next 100 ms, and nodes
+    with no job are not visited."""
+    fed = Worker(FederateContext("loops", "t1", parse_scenario({"duration_s": 1}), tmp_path),
+                 InMemoryBus(InMemoryHub()))
+    fed.setup()
+
+    def published() -> float:
+        return REGISTRY.get_sample_value("cosim_compute_job_duration_seconds_count",
+                                         {"node": "worker-0", "kind": "compress"}) or 0.0
+
+    for window, end in enumerate(range(1000, JOB_METRICS_EVERY_US + 2000, 1000)):
+        adv = Advance(window=window, t_start_us=end - 1000, t_end_us=end, expected_in={})
+        fed.begin_window(adv)
+        while (key := fed.next_event_key()) is not None and key[0] < end:
+            fed.process_next()
+        fed.end_window(adv)
+        if end == 1000:
+            assert published() == 1
+        elif end < 1000 + JOB_METRICS_EVERY_US:
+            assert published() == 1, f"published at {end} us"
+    assert published() == 1 + JOB_METRICS_EVERY_US // 1000
+    assert REGISTRY.get_sample_value("cosim_compute_job_duration_seconds_count",
+                                     {"node": "worker-1", "kind": "compress"}) is None
