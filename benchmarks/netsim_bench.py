@@ -26,10 +26,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # runnable from a checkout without installing
     sys.path.insert(0, str(ROOT))
-# One BLAS thread, as every federate runs netsim (coordinator/runtime_process.py); set before
-# numpy loads.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+from fabric.settings import one_thread_pools  # noqa: E402
+
+one_thread_pools(os.environ)  # as every federate runs netsim; before numpy loads
 
 from fabric.heap import simulation_heap  # noqa: E402
 from fabric.native import compiled_loaded  # noqa: E402

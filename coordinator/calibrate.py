@@ -24,6 +24,7 @@ import numpy as np
 
 from coordinator.launcher import NodeLimits
 from fabric.compute import JOB_MODELS_PATH
+from fabric.settings import one_thread_pools
 from scenario.schema import Scenario
 
 PROFILES = (1.0, 0.5, 0.25)
@@ -73,8 +74,7 @@ class ProcessRunner:
     def env(self) -> dict[str, str]:
         env = dict(os.environ)
         env.setdefault("MUJOCO_GL", "egl")
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            env.setdefault(var, "1")  # as coordinator.runtime_process starts federates
+        one_thread_pools(env)  # as coordinator.runtime_process starts federates
         return env
 
     def run(self, cpus: float | None, jobs: int) -> dict[str, Any]:

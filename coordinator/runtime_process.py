@@ -15,6 +15,7 @@ from pathlib import Path
 
 from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
 from fabric.metrics import PORT_ENV as METRICS_PORT_ENV
+from fabric.settings import one_thread_pools
 from services.main import PARENT_PID_ENV
 
 
@@ -38,10 +39,7 @@ class ProcessLauncher(Launcher):
         env.setdefault("MUJOCO_GL", "egl")
         env["PYTHONUNBUFFERED"] = "1"
         env[PARENT_PID_ENV] = str(os.getpid())
-        # One thread per process: the node's speed is emulated, and BLAS/OpenMP thread pools on a
-        # shared host only add noise to CPU-time measurements.
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            env.setdefault(var, "1")
+        one_thread_pools(env)
         for spec in specs:
             log_path = log_dir / f"{spec.name}.log"
             for name in spec.names:

@@ -28,7 +28,7 @@ from typing import Any
 from coordinator.conductor import RunFailed
 from coordinator.launcher import FederateSpec, Launcher, reap, terminate_session
 from fabric.metrics import PORT_ENV as METRICS_PORT_ENV
-from fabric.settings import env_name, settings
+from fabric.settings import THREAD_POOL_VARS, env_name, settings
 from services.main import PARENT_PID_ENV
 from services.roles import ROLES
 
@@ -377,7 +377,7 @@ class RayLauncher(Launcher):
         env = {k: v for k, v in os.environ.items() if k.startswith("COSIM5G_") and k not in _NOT_FORWARDED}
         env["PYTHONUNBUFFERED"] = "1"
         # One thread per process, as the process runtime: Ray sets these to the actor's CPUs.
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        for var in THREAD_POOL_VARS:
             env[var] = os.environ.get(var, "1")
         if "MUJOCO_GL" in os.environ:
             env["MUJOCO_GL"] = os.environ["MUJOCO_GL"]

@@ -617,7 +617,7 @@ class ComputeNode:
             return {"timing": "model", "host_independent": True}
         if not self.probes:  # no job ran: no duration was scaled, the host was never scored
             return {"timing": self.profile.timing, "cpus": self.profile.cpus, "jobs": 0}
-        if t_us is not None and (not self.probes or self.probes[-1][0] < t_us):
+        if t_us is not None and self.probes[-1][0] < t_us:
             self._probe(t_us)
         scores = [s for _, s in self.probes]
         ratios = [s / self.host.score for s in scores]

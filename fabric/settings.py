@@ -6,6 +6,7 @@ A bad value fails naming the variable, the value and what is allowed.
 from __future__ import annotations
 
 import os
+from collections.abc import MutableMapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -86,3 +87,14 @@ def env_name(field: str) -> str:
     """The environment variable of the settings field ``field``: ``max_queued`` ->
     ``COSIM5G_MAX_QUEUED``."""
     return f"{PREFIX}{field.upper()}"
+
+
+# The thread pools a simulation process runs with one thread each: a node's speed is emulated, and
+# BLAS/OpenMP pools on a shared host only add noise to CPU-time measurements.
+THREAD_POOL_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_thread_pools(env: MutableMapping[str, str]) -> None:
+    """Give every pool of ``THREAD_POOL_VARS`` one thread in ``env`` where it names none."""
+    for var in THREAD_POOL_VARS:
+        env.setdefault(var, "1")

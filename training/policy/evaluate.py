@@ -21,9 +21,10 @@ EVAL_SEED = 100_000  # evaluation cells: episodes EVAL_SEED, EVAL_SEED + 1, ... 
 EVAL_EPISODES = 20
 
 
-def policy_for(name: str, model: str | None = None) -> Policy:
-    """A domain policy by name (``learned`` from ``model``, default domain/models/policy.onnx)."""
-    return make_policy(PolicyConfig(name=name, learned_model=model))  # type: ignore[arg-type]
+def policy_for(name: str, model: str | None = None, **cfg: Any) -> Policy:
+    """A domain policy by name (``learned`` from ``model``, default domain/models/policy.onnx),
+    with any other ``PolicyConfig`` fields in ``cfg``."""
+    return make_policy(PolicyConfig(name=name, learned_model=model, **cfg))  # type: ignore[arg-type]
 
 
 def run_episodes(decide: Callable[[LoopState], Qos], episodes: int = EVAL_EPISODES,

@@ -288,9 +288,9 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict[str, An
         evaluation[name] = res
     # With the floor alone bounding it (the load control would override the policy's own choice),
     # and with its load feature frozen at an idle cell's value: how much of its choice is the load's.
-    frozen = policy_for("learned", str(onnx_path))
     for name, decide in (("learned, floor only", policy_for("learned", str(onnx_path)).decide),
-                         ("learned, floor only, load frozen", lambda st: frozen.decide(F.idle_load(st)))):
+                         ("learned, floor only, load frozen",
+                          policy_for("learned", str(onnx_path), load_feature="idle").decide)):
         evaluation[name] = run_episodes(decide, episodes=episodes, lam=lam, episode_s=episode_s, bounded=False,
                                         floor=True)
     for name, res in evaluation.items():
